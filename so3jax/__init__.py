@@ -1,0 +1,31 @@
+"""so3jax: rigid-body attitude dynamics and control on SO(3), in JAX."""
+
+from ._so3 import (
+    adjoint as adjoint,
+    attitude_error_function as attitude_error_function,
+    bracket as bracket,
+    coadjoint as coadjoint,
+    euler_zyx_rate_matrix as euler_zyx_rate_matrix,
+    exp as exp,
+    from_axis_angle as from_axis_angle,
+    from_euler_zyx as from_euler_zyx,
+    from_quat as from_quat,
+    geodesic_distance as geodesic_distance,
+    hat as hat,
+    is_gimbal_locked as is_gimbal_locked,
+    left_jacobian as left_jacobian,
+    left_jacobian_inv as left_jacobian_inv,
+    log as log,
+    orthogonality_error as orthogonality_error,
+    project as project,
+    quat_multiply as quat_multiply,
+    random_rotation as random_rotation,
+    right_jacobian as right_jacobian,
+    right_jacobian_inv as right_jacobian_inv,
+    to_axis_angle as to_axis_angle,
+    to_euler_zyx as to_euler_zyx,
+    to_quat as to_quat,
+    vee as vee,
+)
+
+__version__ = "0.1.0"

@@ -1,0 +1,778 @@
+"""SO(3) primitives: hat/vee, exp/log, Jacobians, conversions, sampling, errors.
+
+Conventions: rotations are ``(..., 3, 3)``, vectors ``(..., 3)``, quaternions
+scalar-first ``(..., 4)`` as ``(w, x, y, z)``. Every function broadcasts over
+leading axes and works under ``jit``, ``vmap`` and ``grad`` in float32 and float64.
+
+Singular-looking formulas (``sin(t)/t`` and friends) are evaluated with the
+"two ``where``s" pattern: the argument is first made safe, then a Taylor series
+or the closed form is selected, so that values *and* derivatives are finite and
+accurate at ``theta = 0`` and near ``theta = pi``. The Taylor cut-offs depend on
+the dtype (see `_cutoff`): below them the closed form would lose digits to
+cancellation, above them the (9-term) series has a truncation error below
+machine epsilon.
+
+Input checking: wrong trailing shapes raise ``ValueError`` at trace time.
+Value checks (NaN/inf input, zero-norm quaternion or axis, ``det <= 0`` in
+`project`) raise ``ValueError`` only when the call is *eager* (concrete
+arrays); under ``jit``/``vmap``/``grad`` such input yields NaN in the output,
+which `so3jax.simulate` reports in its status.
+"""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._types import Array, ArrayLike, Mat3, Quat, Rot, Scalar, Vec3
+
+# --------------------------------------------------------------------------
+# Input handling
+# --------------------------------------------------------------------------
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _as_float(x: ArrayLike) -> Array:
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.result_type(float))
+    return x
+
+
+def _prep(x: ArrayLike, name: str, trailing: tuple[int, ...]) -> Array:
+    """Convert to a float array, check its trailing shape, and (eagerly) finiteness."""
+    x = _as_float(x)
+    k = len(trailing)
+    if x.ndim < k or tuple(x.shape[x.ndim - k :]) != trailing:
+        want = "(..., " + ", ".join(map(str, trailing)) + ")"
+        raise ValueError(f"{name} must have shape {want}, got shape {tuple(x.shape)}")
+    if _is_concrete(x) and not bool(jnp.all(jnp.isfinite(x))):
+        raise ValueError(f"{name} contains NaN or inf")
+    return x
+
+
+def _common_dtype(*xs: Array):
+    return jnp.result_type(*xs)
+
+
+# --------------------------------------------------------------------------
+# Small dense helpers, written elementwise so that XLA fuses them (batched 3x3
+# `dot`s are slow on CPU under vmap).
+# --------------------------------------------------------------------------
+
+
+def _mm(A: Array, B: Array) -> Array:
+    """``A @ B`` for (..., 3, 3) arrays, as a fused multiply-add."""
+    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
+
+
+def _mv(A: Array, v: Array) -> Array:
+    """``A @ v`` for (..., 3, 3) and (..., 3)."""
+    return jnp.sum(A * v[..., None, :], axis=-1)
+
+
+def _mtv(A: Array, v: Array) -> Array:
+    """``A.T @ v`` for (..., 3, 3) and (..., 3)."""
+    return jnp.sum(A * v[..., :, None], axis=-2)
+
+
+def _mT(A: Array) -> Array:
+    return jnp.swapaxes(A, -1, -2)
+
+
+def _cross(a: Array, b: Array) -> Array:
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _dot(a: Array, b: Array) -> Array:
+    return jnp.sum(a * b, axis=-1)
+
+
+def _det(A: Array) -> Array:
+    return _dot(A[..., 0, :], _cross(A[..., 1, :], A[..., 2, :]))
+
+
+def _eye_like(x: Array, batch: tuple[int, ...]) -> Array:
+    return jnp.broadcast_to(jnp.eye(3, dtype=x.dtype), batch + (3, 3))
+
+
+# --------------------------------------------------------------------------
+# Series and cut-offs
+# --------------------------------------------------------------------------
+
+_NTERMS = 9
+
+
+def _series(coeffs_fn) -> np.ndarray:
+    return np.array([float(coeffs_fn(k)) for k in range(_NTERMS)])
+
+
+# A(t) = sin(th)/th, B = (1 - cos th)/th^2, C = (th - sin th)/th^3, t = th^2.
+_A_SERIES = _series(lambda k: Fraction((-1) ** k, math.factorial(2 * k + 1)))
+_B_SERIES = _series(lambda k: Fraction((-1) ** k, math.factorial(2 * k + 2)))
+_C_SERIES = _series(lambda k: Fraction((-1) ** k, math.factorial(2 * k + 3)))
+# D(t) = (1 - (th/2) cot(th/2)) / th^2 = sum_{n>=1} |B_2n| t^(n-1) / (2n)!
+# (Bernoulli numbers; Abramowitz & Stegun 4.3.70).
+_BERNOULLI_ABS = [
+    Fraction(1, 6),
+    Fraction(1, 30),
+    Fraction(1, 42),
+    Fraction(1, 30),
+    Fraction(5, 66),
+    Fraction(691, 2730),
+    Fraction(7, 6),
+    Fraction(3617, 510),
+    Fraction(43867, 798),
+]
+_D_SERIES = _series(lambda k: _BERNOULLI_ABS[k] / math.factorial(2 * k + 2))
+# atan(r)/r = sum (-1)^k r^(2k) / (2k+1), in s = r^2 (used by `log` near 0).
+_ATAN_SERIES = np.array([(-1) ** k / (2 * k + 1) for k in range(12)])
+
+
+def _cutoff(dtype) -> float:
+    """Threshold on ``theta^2`` below which the Taylor series are used.
+
+    Chosen so that the 9-term series is exact to machine precision below it and
+    the closed forms (whose cancellation costs about ``eps / theta^2``) are
+    accurate above it: 0.5 in float64, 1.0 in float32 and lower precisions.
+    """
+    return 0.5 if jnp.finfo(dtype).bits >= 64 else 1.0
+
+
+def _atan_cutoff(dtype) -> float:
+    return 1e-2 if jnp.finfo(dtype).bits >= 64 else 3e-2
+
+
+def _polyval(coeffs: np.ndarray, t: Array) -> Array:
+    out = jnp.full_like(t, coeffs[-1])
+    for c in coeffs[-2::-1]:
+        out = out * t + c
+    return out
+
+
+def _coeffs(t: Array, which: str) -> Array:
+    """Evaluate one of the coefficient functions A, B, C, D at ``t = theta^2``."""
+    small = t < _cutoff(t.dtype)
+    ts = jnp.where(small, jnp.ones_like(t), t)  # safe argument for the closed form
+    th = jnp.sqrt(ts)
+    if which == "A":
+        series, closed = _A_SERIES, jnp.sin(th) / th
+    elif which == "B":
+        # 2 sin^2(th/2) / th^2 has no cancellation, unlike (1 - cos th) / th^2.
+        series, closed = _B_SERIES, 2.0 * (jnp.sin(0.5 * th) / th) ** 2
+    elif which == "C":
+        series, closed = _C_SERIES, (th - jnp.sin(th)) / (ts * th)
+    elif which == "D":
+        half = 0.5 * th
+        # (1 + cos th) / (2 th sin th) written as cot(th/2) / (2 th): finite at th = pi.
+        series, closed = _D_SERIES, (1.0 - half * jnp.cos(half) / jnp.sin(half)) / ts
+    else:  # pragma: no cover
+        raise AssertionError(which)
+    return jnp.where(small, _polyval(series, t), closed)
+
+
+# --------------------------------------------------------------------------
+# hat / vee, algebra and group actions
+# --------------------------------------------------------------------------
+
+
+def _hat(w: Array) -> Array:
+    z = jnp.zeros_like(w[..., 0])
+    w0, w1, w2 = w[..., 0], w[..., 1], w[..., 2]
+    return jnp.stack(
+        [
+            jnp.stack([z, -w2, w1], axis=-1),
+            jnp.stack([w2, z, -w0], axis=-1),
+            jnp.stack([-w1, w0, z], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def _vee(W: Array) -> Array:
+    return 0.5 * jnp.stack(
+        [W[..., 2, 1] - W[..., 1, 2], W[..., 0, 2] - W[..., 2, 0], W[..., 1, 0] - W[..., 0, 1]],
+        axis=-1,
+    )
+
+
+def hat(w: Vec3) -> Mat3:
+    """Skew-symmetric matrix of a vector: ``hat(w) @ v = w x v``.
+
+    **Arguments:**
+
+    - `w`: vector, shape `(..., 3)`.
+
+    **Returns:** skew-symmetric matrix, shape `(..., 3, 3)`.
+    """
+    return _hat(_prep(w, "w", (3,)))
+
+
+def vee(W: Mat3) -> Vec3:
+    """Inverse of `hat`: ``vee(hat(w)) = w``.
+
+    For a matrix that is not skew-symmetric this returns the vector of its
+    skew part ``(W - W^T) / 2``.
+
+    **Arguments:**
+
+    - `W`: matrix, shape `(..., 3, 3)`.
+
+    **Returns:** vector, shape `(..., 3)`.
+    """
+    return _vee(_prep(W, "W", (3, 3)))
+
+
+def bracket(x: Vec3, y: Vec3) -> Vec3:
+    """Lie bracket of so(3) in vector form: ``[hat x, hat y] = hat(x cross y)``.
+
+    **Arguments:**
+
+    - `x`, `y`: vectors, shape `(..., 3)`.
+
+    **Returns:** ``x cross y``, shape `(..., 3)`.
+    """
+    return _cross(_prep(x, "x", (3,)), _prep(y, "y", (3,)))
+
+
+def adjoint(R: Rot, w: Vec3) -> Vec3:
+    """Adjoint action of SO(3) on so(3) in vector form: ``Ad_R w = R w``.
+
+    Equivalently ``R hat(w) R^T = hat(R w)``.
+
+    **Arguments:**
+
+    - `R`: rotation, shape `(..., 3, 3)`.
+    - `w`: vector, shape `(..., 3)`.
+
+    **Returns:** ``R w``, shape `(..., 3)`.
+    """
+    return _mv(_prep(R, "R", (3, 3)), _prep(w, "w", (3,)))
+
+
+def coadjoint(R: Rot, M: Vec3) -> Vec3:
+    """Coadjoint action of SO(3) on so(3)* ~ R^3 (momenta): ``Ad*_R M = R M``.
+
+    With the dual pairing given by the dot product, the coadjoint orbits are
+    spheres ``|M| = const`` (the Casimir of the free rigid body).
+
+    **Arguments:**
+
+    - `R`: rotation, shape `(..., 3, 3)`.
+    - `M`: momentum, shape `(..., 3)`.
+
+    **Returns:** ``R M``, shape `(..., 3)`.
+    """
+    return _mv(_prep(R, "R", (3, 3)), _prep(M, "M", (3,)))
+
+
+# --------------------------------------------------------------------------
+# exp / log and Jacobians
+# --------------------------------------------------------------------------
+
+
+def _exp(w: Array) -> Array:
+    t = _dot(w, w)
+    A = _coeffs(t, "A")[..., None, None]
+    B = _coeffs(t, "B")[..., None, None]
+    # hat(w)^2 = w w^T - |w|^2 I, so R = (1 - B t) I + A hat(w) + B w w^T.
+    eye = _eye_like(w, w.shape[:-1])
+    wwT = w[..., :, None] * w[..., None, :]
+    return (1.0 - B * t[..., None, None]) * eye + A * _hat(w) + B * wwT
+
+
+def exp(w: Vec3) -> Rot:
+    """Exponential map so(3) -> SO(3) (Rodrigues' formula).
+
+    ``exp(w) = I + sin(th)/th hat(w) + (1 - cos th)/th^2 hat(w)^2``, ``th = |w|``.
+
+    **Arguments:**
+
+    - `w`: rotation vector, shape `(..., 3)`.
+
+    **Returns:** rotation matrix, shape `(..., 3, 3)`.
+    """
+    return _exp(_prep(w, "w", (3,)))
+
+
+def _to_quat(R: Array) -> Array:
+    # Shepperd's method (J. Guidance & Control 1(3), 1978): pick the largest of
+    # 4w^2, 4x^2, 4y^2, 4z^2 (all computable from the diagonal) as the pivot.
+    # All four candidates use the same square root s = sqrt(max) >= 1, so no
+    # branch ever takes the square root of a negative number (safe under grad).
+    R00, R01, R02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    R10, R11, R12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    R20, R21, R22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    tr = R00 + R11 + R22
+    d = jnp.stack([1.0 + tr, 1.0 + 2 * R00 - tr, 1.0 + 2 * R11 - tr, 1.0 + 2 * R22 - tr], -1)
+    i = jnp.argmax(d, axis=-1)
+    dmax = jnp.max(d, axis=-1)
+    s = jnp.sqrt(jnp.where(dmax > 0, dmax, 1.0))
+    h = 0.5 * s
+    inv = 0.5 / s
+    a, b, c = (R21 - R12) * inv, (R02 - R20) * inv, (R10 - R01) * inv
+    e, f, g = (R01 + R10) * inv, (R02 + R20) * inv, (R12 + R21) * inv
+    q0 = jnp.stack([h, a, b, c], -1)
+    q1 = jnp.stack([a, h, e, f], -1)
+    q2 = jnp.stack([b, e, h, g], -1)
+    q3 = jnp.stack([c, f, g, h], -1)
+    i = i[..., None]
+    q = jnp.where(i == 0, q0, jnp.where(i == 1, q1, jnp.where(i == 2, q2, q3)))
+    q = jnp.where(q[..., :1] < 0, -q, q)
+    q = q / jnp.sqrt(_dot(q, q))[..., None]
+    return jnp.where((dmax > 0)[..., None], q, jnp.nan)
+
+
+def _log_from_quat(q: Array) -> Array:
+    # q = (cos(th/2), sin(th/2) u) with w >= 0, so th = 2 atan2(|v|, w) in [0, pi]
+    # and log R = th u = (2 atan2(|v|, w) / |v|) v.
+    w, v = q[..., 0], q[..., 1:]
+    n2 = _dot(v, v)
+    small = n2 < _atan_cutoff(q.dtype) * w * w  # (|v| / w)^2 small: th small
+    w_s = jnp.where(small, w, 1.0)
+    n_s = jnp.sqrt(jnp.where(small, 1.0, n2))
+    series = 2.0 / w_s * _polyval(_ATAN_SERIES, n2 / (w_s * w_s))
+    closed = 2.0 * jnp.arctan2(n_s, w) / n_s
+    return jnp.where(small, series, closed)[..., None] * v
+
+
+def log(R: Rot) -> Vec3:
+    """Logarithm SO(3) -> so(3): the rotation vector ``w`` with ``|w| <= pi``.
+
+    Computed through a largest-pivot (Shepperd) quaternion and ``atan2``, which
+    is accurate at every angle (``arccos`` of the trace loses half the digits
+    near 0 and pi). At exactly ``pi`` the sign of ``w`` is a convention.
+
+    **Arguments:**
+
+    - `R`: rotation matrix, shape `(..., 3, 3)`.
+
+    **Returns:** rotation vector, shape `(..., 3)`.
+    """
+    return _log_from_quat(_to_quat(_prep(R, "R", (3, 3))))
+
+
+def _jac(w: Array, sign_b: float, which_b: str, which_c: str, b_const: float | None) -> Array:
+    t = _dot(w, w)
+    C = _coeffs(t, which_c)[..., None, None]
+    B = (b_const if b_const is not None else _coeffs(t, which_b)[..., None, None]) * sign_b
+    W = _hat(w)
+    eye = _eye_like(w, w.shape[:-1])
+    wwT = w[..., :, None] * w[..., None, :]
+    return eye + B * W + C * (wwT - t[..., None, None] * eye)
+
+
+def left_jacobian(w: Vec3) -> Mat3:
+    """Left Jacobian of SO(3): ``J_l(w) = I + B hat(w) + C hat(w)^2``.
+
+    ``B = (1 - cos th)/th^2``, ``C = (th - sin th)/th^3``; ``exp(w + dw) ~
+    exp(J_l(w) dw) exp(w)``.
+
+    **Arguments:**
+
+    - `w`: rotation vector, shape `(..., 3)`.
+
+    **Returns:** shape `(..., 3, 3)`.
+
+    References: G. S. Chirikjian, *Stochastic Models, Information Theory, and
+    Lie Groups*, vol. 2, Birkhauser 2011, sec. 10.6.
+    """
+    return _jac(_prep(w, "w", (3,)), 1.0, "B", "C", None)
+
+
+def right_jacobian(w: Vec3) -> Mat3:
+    """Right Jacobian of SO(3): ``J_r(w) = J_l(-w) = I - B hat(w) + C hat(w)^2``.
+
+    ``d/dt exp(w) = exp(w) hat(J_r(w) w')``.
+
+    **Arguments:**
+
+    - `w`: rotation vector, shape `(..., 3)`.
+
+    **Returns:** shape `(..., 3, 3)`.
+    """
+    return _jac(_prep(w, "w", (3,)), -1.0, "B", "C", None)
+
+
+def left_jacobian_inv(w: Vec3) -> Mat3:
+    """Inverse left Jacobian: ``I - 1/2 hat(w) + D hat(w)^2``.
+
+    ``D = (1 - (th/2) cot(th/2)) / th^2``, finite for ``th < 2 pi``.
+
+    **Arguments:**
+
+    - `w`: rotation vector, shape `(..., 3)`.
+
+    **Returns:** shape `(..., 3, 3)`.
+    """
+    return _jac(_prep(w, "w", (3,)), -1.0, "", "D", 0.5)
+
+
+def right_jacobian_inv(w: Vec3) -> Mat3:
+    """Inverse right Jacobian: ``I + 1/2 hat(w) + D hat(w)^2`` (the dexp^-1 of RKMK).
+
+    If ``R = R0 exp(u)`` and ``R' = R hat(Omega)`` then ``u' = J_r^-1(u) Omega``.
+
+    **Arguments:**
+
+    - `w`: rotation vector, shape `(..., 3)`.
+
+    **Returns:** shape `(..., 3, 3)`.
+    """
+    return _jac(_prep(w, "w", (3,)), 1.0, "", "D", 0.5)
+
+
+def _dexpinv(u: Array, v: Array) -> Array:
+    """``J_r^-1(u) v`` without forming the matrix (used by the integrators)."""
+    t = _dot(u, u)
+    D = _coeffs(t, "D")[..., None]
+    uxv = _cross(u, v)
+    return v + 0.5 * uxv + D * _cross(u, uxv)
+
+
+# --------------------------------------------------------------------------
+# Quaternions, axis-angle, Euler angles
+# --------------------------------------------------------------------------
+
+
+def _from_quat(q: Array) -> Array:
+    n2 = _dot(q, q)
+    q = q / jnp.sqrt(n2)[..., None]
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return jnp.stack(
+        [
+            jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def from_quat(q: Quat) -> Rot:
+    """Rotation matrix of a quaternion ``(w, x, y, z)`` (normalised first).
+
+    ``q`` and ``-q`` give the same rotation (the double cover S^3 -> SO(3)).
+    A zero quaternion is a ``ValueError`` when eager and gives NaN under ``jit``.
+
+    **Arguments:**
+
+    - `q`: quaternion, scalar first, shape `(..., 4)`.
+
+    **Returns:** rotation matrix, shape `(..., 3, 3)`.
+    """
+    q = _prep(q, "q", (4,))
+    if _is_concrete(q) and bool(jnp.any(_dot(q, q) == 0)):
+        raise ValueError("q has zero norm; a quaternion must be non-zero to define a rotation")
+    return _from_quat(q)
+
+
+def to_quat(R: Rot) -> Quat:
+    """Unit quaternion ``(w, x, y, z)`` of a rotation, with ``w >= 0``.
+
+    Shepperd's largest-pivot method: accurate at every angle.
+
+    **Arguments:**
+
+    - `R`: rotation matrix, shape `(..., 3, 3)`.
+
+    **Returns:** quaternion, shape `(..., 4)`.
+    """
+    return _to_quat(_prep(R, "R", (3, 3)))
+
+
+def quat_multiply(p: Quat, q: Quat) -> Quat:
+    """Hamilton product ``p q`` (scalar first); ``from_quat(p q) = from_quat(p) from_quat(q)``.
+
+    **Arguments:**
+
+    - `p`, `q`: quaternions, shape `(..., 4)`.
+
+    **Returns:** shape `(..., 4)`.
+    """
+    p = _prep(p, "p", (4,))
+    q = _prep(q, "q", (4,))
+    pw, pv = p[..., :1], p[..., 1:]
+    qw, qv = q[..., :1], q[..., 1:]
+    w = pw * qw - _dot(pv, qv)[..., None]
+    v = pw * qv + qw * pv + _cross(pv, qv)
+    return jnp.concatenate([w, v], -1)
+
+
+def from_axis_angle(axis: Vec3, angle: Scalar) -> Rot:
+    """Rotation by ``angle`` (radians) about ``axis`` (normalised first).
+
+    **Arguments:**
+
+    - `axis`: shape `(..., 3)`, non-zero.
+    - `angle`: shape `(...)`, broadcast against the axis' batch shape.
+
+    **Returns:** rotation matrix, shape `(..., 3, 3)`.
+    """
+    axis = _prep(axis, "axis", (3,))
+    angle = _prep(angle, "angle", ())
+    n2 = _dot(axis, axis)
+    if _is_concrete(axis) and bool(jnp.any(n2 == 0)):
+        raise ValueError("axis has zero norm; give a non-zero rotation axis")
+    u = axis / jnp.sqrt(n2)[..., None]
+    return _exp(u * angle[..., None])
+
+
+def to_axis_angle(R: Rot) -> tuple[Vec3, Scalar]:
+    """Unit axis and angle in ``[0, pi]`` of a rotation.
+
+    At the identity the axis is undefined; ``e3 = (0, 0, 1)`` is returned.
+
+    **Arguments:**
+
+    - `R`: rotation matrix, shape `(..., 3, 3)`.
+
+    **Returns:** ``(axis, angle)`` with shapes `(..., 3)` and `(...)`.
+    """
+    w = log(R)
+    t = _dot(w, w)
+    zero = t == 0
+    th = jnp.sqrt(jnp.where(zero, 1.0, t))
+    e3 = jnp.zeros_like(w).at[..., 2].set(1.0)
+    axis = jnp.where(zero[..., None], e3, w / th[..., None])
+    return axis, jnp.where(zero, 0.0, th)
+
+
+def _rz_ry_rx(cphi, sphi, cth, sth, cpsi, spsi) -> Array:
+    return jnp.stack(
+        [
+            jnp.stack(
+                [cphi * cth, cphi * sth * spsi - sphi * cpsi, cphi * sth * cpsi + sphi * spsi], -1
+            ),
+            jnp.stack(
+                [sphi * cth, sphi * sth * spsi + cphi * cpsi, sphi * sth * cpsi - cphi * spsi], -1
+            ),
+            jnp.stack([-sth, cth * spsi, cth * cpsi], -1),
+        ],
+        -2,
+    )
+
+
+def from_euler_zyx(phi: Scalar, theta: Scalar, psi: Scalar) -> Rot:
+    """Rotation from ZYX Euler angles: ``R = Rz(phi) Ry(theta) Rx(psi)``.
+
+    (Yaw ``phi``, pitch ``theta``, roll ``psi``; intrinsic z-y'-x''.)
+
+    **Arguments:**
+
+    - `phi`, `theta`, `psi`: angles in radians, broadcastable shapes `(...)`.
+
+    **Returns:** rotation matrix, shape `(..., 3, 3)`.
+    """
+    phi, theta, psi = (_prep(a, n, ()) for a, n in ((phi, "phi"), (theta, "theta"), (psi, "psi")))
+    phi, theta, psi = jnp.broadcast_arrays(phi, theta, psi)
+    return _rz_ry_rx(
+        jnp.cos(phi), jnp.sin(phi), jnp.cos(theta), jnp.sin(theta), jnp.cos(psi), jnp.sin(psi)
+    )
+
+
+def to_euler_zyx(R: Rot) -> tuple[Scalar, Scalar, Scalar]:
+    """ZYX Euler angles ``(phi, theta, psi)`` with ``R = Rz(phi) Ry(theta) Rx(psi)``.
+
+    Ranges: ``phi, psi`` in ``(-pi, pi]``, ``theta`` in ``[-pi/2, pi/2]``. At
+    gimbal lock (``theta = +-pi/2``, see `is_gimbal_locked`) only ``phi - psi``
+    (or ``phi + psi``) is determined; ``psi`` then follows from ``phi`` so that
+    the returned angles still reproduce ``R`` to round-off: ``phi`` is taken
+    from the first column, then ``theta`` and ``psi`` from ``Rz(phi)^T R``.
+
+    **Arguments:**
+
+    - `R`: rotation matrix, shape `(..., 3, 3)`.
+
+    **Returns:** ``(phi, theta, psi)``, each of shape `(...)`.
+    """
+    R = _prep(R, "R", (3, 3))
+    R00, R10, R20 = R[..., 0, 0], R[..., 1, 0], R[..., 2, 0]
+    c2 = R00 * R00 + R10 * R10
+    tiny = jnp.finfo(R.dtype).tiny
+    locked = c2 <= tiny  # exactly at gimbal lock: phi is arbitrary, take 0
+    phi = jnp.arctan2(jnp.where(locked, 0.0, R10), jnp.where(locked, 1.0, R00))
+    cphi, sphi = jnp.cos(phi), jnp.sin(phi)
+    # N = Rz(phi)^T R = Ry(theta) Rx(psi)
+    N00 = cphi * R00 + sphi * R10
+    N11 = -sphi * R[..., 0, 1] + cphi * R[..., 1, 1]
+    N12 = -sphi * R[..., 0, 2] + cphi * R[..., 1, 2]
+    theta = jnp.arctan2(-R20, N00)
+    psi = jnp.arctan2(-N12, N11)
+    return phi, theta, psi
+
+
+def is_gimbal_locked(R: Rot, atol: float = 1e-6) -> Array:
+    """Whether ``R`` is within ``atol`` of ZYX gimbal lock (``|cos theta| <= atol``).
+
+    There ``det E = -cos(theta)`` vanishes (see `euler_zyx_rate_matrix`) and the
+    Euler angle rates are undefined.
+
+    **Arguments:**
+
+    - `R`: rotation matrix, shape `(..., 3, 3)`.
+    - `atol`: tolerance on ``|cos theta|``.
+
+    **Returns:** boolean array, shape `(...)`.
+    """
+    R = _prep(R, "R", (3, 3))
+    return R[..., 0, 0] ** 2 + R[..., 1, 0] ** 2 <= atol**2
+
+
+def euler_zyx_rate_matrix(phi: Scalar, theta: Scalar, psi: Scalar) -> Mat3:
+    """Matrix ``E`` with body rate ``Omega = E (phi', theta', psi')``, ZYX angles.
+
+    ``E = [[-sin th, 0, 1], [cos th sin psi, cos psi, 0], [cos th cos psi, -sin psi, 0]]``
+    and ``det E = -cos(theta)``: singular at gimbal lock ``theta = +-pi/2``.
+
+    **Arguments:**
+
+    - `phi`, `theta`, `psi`: angles, broadcastable shapes `(...)` (``phi`` does not enter).
+
+    **Returns:** shape `(..., 3, 3)`.
+    """
+    phi, theta, psi = (_prep(a, n, ()) for a, n in ((phi, "phi"), (theta, "theta"), (psi, "psi")))
+    phi, theta, psi = jnp.broadcast_arrays(phi, theta, psi)
+    cth, sth, cpsi, spsi = jnp.cos(theta), jnp.sin(theta), jnp.cos(psi), jnp.sin(psi)
+    z, o = jnp.zeros_like(theta), jnp.ones_like(theta)
+    return jnp.stack(
+        [
+            jnp.stack([-sth, z, o], -1),
+            jnp.stack([cth * spsi, cpsi, z], -1),
+            jnp.stack([cth * cpsi, -spsi, z], -1),
+        ],
+        -2,
+    )
+
+
+# --------------------------------------------------------------------------
+# Projection, sampling, distances
+# --------------------------------------------------------------------------
+
+_POLAR_ITERS = 12
+
+
+def _project(M: Array) -> Array:
+    # Orthogonal polar factor by scaled Newton iteration X <- (z X + X^-T / z) / 2
+    # (Higham, "Computing the polar decomposition", SIAM J. Sci. Stat. Comput. 7,
+    # 1986), with the Frobenius-norm scaling z = sqrt(|X^-1| / |X|). Converges
+    # quadratically; differentiable (unlike the SVD at repeated singular values).
+    def cof_over_det(X):
+        c0, c1, c2 = X[..., 0, :], X[..., 1, :], X[..., 2, :]
+        cof = jnp.stack([_cross(c1, c2), _cross(c2, c0), _cross(c0, c1)], -2)
+        return cof / _det(X)[..., None, None]  # = X^{-T}
+
+    def body(_, X):
+        Y = cof_over_det(X)
+        nx = jnp.sqrt(jnp.sum(X * X, axis=(-1, -2)))
+        ny = jnp.sqrt(jnp.sum(Y * Y, axis=(-1, -2)))
+        z = jnp.sqrt(ny / nx)[..., None, None]
+        return 0.5 * (z * X + Y / z)
+
+    det = _det(M)
+    X = jax.lax.fori_loop(
+        0, _POLAR_ITERS, body, jnp.where((det > 0)[..., None, None], M, jnp.eye(3, dtype=M.dtype))
+    )
+    return jnp.where((det > 0)[..., None, None], X, jnp.nan)
+
+
+def project(M: Mat3) -> Rot:
+    """Nearest rotation to ``M`` in the Frobenius norm (orthogonal polar factor).
+
+    Requires ``det M > 0``: a ``ValueError`` when eager, NaN under ``jit``.
+
+    **Arguments:**
+
+    - `M`: matrix, shape `(..., 3, 3)`.
+
+    **Returns:** rotation matrix, shape `(..., 3, 3)`.
+    """
+    M = _prep(M, "M", (3, 3))
+    if _is_concrete(M) and bool(jnp.any(_det(M) <= 0)):
+        raise ValueError(
+            "project needs det(M) > 0: a matrix with det <= 0 has no unique nearest rotation "
+            "(it is a reflection or singular)"
+        )
+    return _project(M)
+
+
+def random_rotation(key, shape: tuple[int, ...] = (), dtype=None) -> Rot:
+    """Rotations drawn uniformly (Haar measure) on SO(3).
+
+    A normalised 4D Gaussian is uniform on S^3, and the double cover maps the
+    uniform measure on S^3 to the Haar measure on SO(3) (Shoemake, Graphics Gems
+    III, 1992).
+
+    **Arguments:**
+
+    - `key`: a JAX PRNG key.
+    - `shape`: batch shape of the output.
+    - `dtype`: float dtype (default: JAX's default float).
+
+    **Returns:** rotation matrices, shape `shape + (3, 3)`.
+    """
+    if isinstance(shape, int):
+        shape = (shape,)
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    q = jax.random.normal(key, tuple(shape) + (4,), dtype=dtype)
+    return _from_quat(q)
+
+
+def geodesic_distance(R1: Rot, R2: Rot) -> Scalar:
+    """Geodesic (angle) distance ``|log(R1^T R2)|`` in ``[0, pi]``.
+
+    **Arguments:**
+
+    - `R1`, `R2`: rotation matrices, broadcastable shapes `(..., 3, 3)`.
+
+    **Returns:** angle in radians, shape `(...)`.
+    """
+    R1 = _prep(R1, "R1", (3, 3))
+    R2 = _prep(R2, "R2", (3, 3))
+    q = _to_quat(_mm(_mT(R1), R2))
+    n2 = _dot(q[..., 1:], q[..., 1:])
+    pos = n2 > 0
+    n = jnp.sqrt(jnp.where(pos, n2, 1.0))
+    return jnp.where(pos, 2.0 * jnp.arctan2(n, q[..., 0]), 0.0)
+
+
+def attitude_error_function(R: Rot, Rd: Rot) -> Scalar:
+    """Attitude error function ``Psi = 1/2 tr(I - Rd^T R)`` in ``[0, 2]``.
+
+    ``Psi = 1 - cos(angle)`` of the error rotation ``Rd^T R``.
+
+    **Arguments:**
+
+    - `R`, `Rd`: rotation matrices, broadcastable shapes `(..., 3, 3)`.
+
+    **Returns:** shape `(...)`.
+
+    References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control
+    of a quadrotor UAV on SE(3)", CDC 2010.
+    """
+    R = _prep(R, "R", (3, 3))
+    Rd = _prep(Rd, "Rd", (3, 3))
+    return 0.5 * (3.0 - jnp.sum(Rd * R, axis=(-1, -2)))
+
+
+def orthogonality_error(R: Rot) -> Scalar:
+    """Distance from the group: ``||R^T R - I||_F``.
+
+    **Arguments:**
+
+    - `R`: matrix, shape `(..., 3, 3)`.
+
+    **Returns:** shape `(...)`.
+    """
+    R = _prep(R, "R", (3, 3))
+    E = _mm(_mT(R), R) - jnp.eye(3, dtype=R.dtype)
+    return jnp.sqrt(jnp.sum(E * E, axis=(-1, -2)))
