@@ -1,5 +1,22 @@
 """so3jax: rigid-body attitude dynamics and control on SO(3), in JAX."""
 
+from . import scenes as scenes
+from ._dynamics import RigidBody as RigidBody
+from ._integrators import (
+    CF4 as CF4,
+    CG3 as CG3,
+    LGVI as LGVI,
+    RKMK as RKMK,
+    RKMK4 as RKMK4,
+    RKMK32 as RKMK32,
+    RKMK45 as RKMK45,
+    AbstractLieSolver as AbstractLieSolver,
+    ButcherTableau as ButcherTableau,
+    CFTableau as CFTableau,
+    CommutatorFree as CommutatorFree,
+    LieEuler as LieEuler,
+)
+from ._simulate import Status as Status, Trajectory as Trajectory, simulate as simulate
 from ._so3 import (
     adjoint as adjoint,
     attitude_error_function as attitude_error_function,
@@ -27,5 +44,6 @@ from ._so3 import (
     to_quat as to_quat,
     vee as vee,
 )
+from ._state import LieState as LieState, LieTangent as LieTangent
 
 __version__ = "0.1.0"

@@ -1,0 +1,26 @@
+"""Lie-group integrators: one file per method family over a shared base."""
+
+from ._base import (
+    AbstractLieSolver as AbstractLieSolver,
+    ButcherTableau as ButcherTableau,
+    CFTableau as CFTableau,
+)
+from ._cf import (
+    CF4 as CF4,
+    CF4_TABLEAU as CF4_TABLEAU,
+    CG3 as CG3,
+    CG3_TABLEAU as CG3_TABLEAU,
+    LIE_EULER_TABLEAU as LIE_EULER_TABLEAU,
+    CommutatorFree as CommutatorFree,
+    LieEuler as LieEuler,
+)
+from ._lgvi import LGVI as LGVI
+from ._rkmk import (
+    BS3_TABLEAU as BS3_TABLEAU,
+    DOPRI5_TABLEAU as DOPRI5_TABLEAU,
+    RK4_TABLEAU as RK4_TABLEAU,
+    RKMK as RKMK,
+    RKMK4 as RKMK4,
+    RKMK32 as RKMK32,
+    RKMK45 as RKMK45,
+)

@@ -1,0 +1,170 @@
+"""Runge–Kutta–Munthe-Kaas methods over any explicit tableau.
+
+Stage ``i`` moves to ``R0 exp(u_i)`` with ``u_i = h sum_j a_ij K~_j``, where
+``K~_j = dexp^-1_{u_j}(xi_j)`` pulls the body velocity ``xi_j`` of stage ``j``
+back to the Lie algebra at ``R0``. For ``R = R0 exp(u)`` and ``R' = R hat(xi)``,
+``u' = J_r^-1(u) xi = xi + 1/2 u x xi + D(|u|) u x (u x xi)`` (right
+trivialisation: the ``+1/2`` sign matters; the left-trivialised sign keeps the
+method on the group but silently drops it to order 2).
+
+References: H. Munthe-Kaas, "High order Runge–Kutta methods on manifolds",
+Appl. Numer. Math. 29 (1999); E. Hairer, C. Lubich, G. Wanner, *Geometric
+Numerical Integration*, 2nd ed., sec. IV.8.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from .._so3 import _D_SERIES, _cross, _dexpinv, _dot, _polyval
+from .._state import LieState, retract
+from ._base import AbstractLieSolver, ButcherTableau, lincomb
+
+
+def _dexpinv_truncated(u, v, order: int):
+    """``J_r^-1(u) v`` truncated to the commutators needed for ``order``.
+
+    Terms of degree ``q <= order - 2`` in ``u`` suffice (Munthe-Kaas 1999).
+    """
+    if order <= 2:
+        return v
+    uxv = _cross(u, v)
+    out = v + 0.5 * uxv
+    n_terms = (order - 2) // 2
+    if n_terms > 0:
+        D = _polyval(_D_SERIES[:n_terms], _dot(u, u))[..., None]
+        out = out + D * _cross(u, uxv)
+    return out
+
+
+def rkmk_stages(tableau: ButcherTableau, exact: bool, scene, t, y: LieState, h):
+    """Run the stages; return the pulled-back velocities and vector derivatives."""
+    order = tableau.order
+    kts, dxs = [], []
+    for i in range(tableau.stages):
+        if i == 0:
+            Yi, u = y, None
+        else:
+            row = tableau.a[i - 1]
+            u = lincomb(row, kts, h)
+            dx = lincomb(row, dxs, h)
+            u = jnp.zeros_like(y.R[..., 0]) if u is None else u
+            dx = jnp.zeros_like(y.x) if dx is None else dx
+            Yi = retract(y, u, dx)
+        f = scene.vector_field(t + tableau.c[i] * h, Yi)
+        if u is None:
+            kt = f.xi
+        elif exact:
+            kt = _dexpinv(u, f.xi)
+        else:
+            kt = _dexpinv_truncated(u, f.xi, order)
+        kts.append(kt)
+        dxs.append(f.dx)
+    return kts, dxs
+
+
+class RKMK(AbstractLieSolver):
+    """Runge–Kutta–Munthe-Kaas method over an explicit `ButcherTableau`.
+
+    ``R_{n+1} = R_n exp(h sum_i b_i dexp^-1_{u_i}(Omega_i))``; the vector part is
+    the plain RK update.
+
+    **Arguments:**
+
+    - `tableau`: a `ButcherTableau`.
+    - `dexpinv`: ``"exact"`` (the right Jacobian inverse) or ``"truncated"``
+      (the series cut at the commutators the order needs: cheaper, same order).
+
+    References: H. Munthe-Kaas, Appl. Numer. Math. 29 (1999) 115–127.
+    """
+
+    tableau: ButcherTableau = eqx.field(static=True)
+    dexpinv: str = eqx.field(static=True, default="exact")
+
+    def __check_init__(self):
+        if self.dexpinv not in ("exact", "truncated"):
+            raise ValueError(f"dexpinv must be 'exact' or 'truncated', got {self.dexpinv!r}")
+
+    @property
+    def order(self) -> int:
+        return self.tableau.order
+
+    def step(self, scene, t, y, h):
+        kts, dxs = rkmk_stages(self.tableau, self.dexpinv == "exact", scene, t, y, h)
+        u = lincomb(self.tableau.b, kts, h)
+        dx = lincomb(self.tableau.b, dxs, h)
+        return retract(y, u, dx), jnp.array(False)
+
+
+F = lambda *xs: tuple(xs)  # noqa: E731  (short rows for the tableaus below)
+
+#: The classic Runge–Kutta tableau (order 4).
+RK4_TABLEAU = ButcherTableau.from_fractions(
+    a=[F("1/2"), F(0, "1/2"), F(0, 0, 1)],
+    b=F("1/6", "1/3", "1/3", "1/6"),
+    c=F(0, "1/2", "1/2", 1),
+    order=4,
+)
+
+#: Dormand–Prince 5(4) (J. Comput. Appl. Math. 6, 1980), FSAL.
+DOPRI5_TABLEAU = ButcherTableau.from_fractions(
+    a=[
+        F("1/5"),
+        F("3/40", "9/40"),
+        F("44/45", "-56/15", "32/9"),
+        F("19372/6561", "-25360/2187", "64448/6561", "-212/729"),
+        F("9017/3168", "-355/33", "46732/5247", "49/176", "-5103/18656"),
+        F("35/384", 0, "500/1113", "125/192", "-2187/6784", "11/84"),
+    ],
+    b=F("35/384", 0, "500/1113", "125/192", "-2187/6784", "11/84", 0),
+    c=F(0, "1/5", "3/10", "4/5", "8/9", 1, 1),
+    order=5,
+    b_low=F("5179/57600", 0, "7571/16695", "393/640", "-92097/339200", "187/2100", "1/40"),
+    order_low=4,
+    fsal=True,
+)
+
+#: Bogacki–Shampine 3(2) (Appl. Math. Lett. 2, 1989), FSAL.
+BS3_TABLEAU = ButcherTableau.from_fractions(
+    a=[F("1/2"), F(0, "3/4"), F("2/9", "1/3", "4/9")],
+    b=F("2/9", "1/3", "4/9", 0),
+    c=F(0, "1/2", "3/4", 1),
+    order=3,
+    b_low=F("7/24", "1/4", "1/3", "1/8"),
+    order_low=2,
+    fsal=True,
+)
+
+
+class RKMK4(RKMK):
+    """RKMK with the classic RK4 tableau and dexp^-1 truncated at order 4 (order 4)."""
+
+    tableau: ButcherTableau = eqx.field(static=True, default=RK4_TABLEAU)
+    dexpinv: str = eqx.field(static=True, default="truncated")
+
+
+class RKMK45(RKMK):
+    """RKMK with the Dormand–Prince 5(4) pair and the exact dexp^-1 (order 5).
+
+    ``RKMK45(embedded=True)`` steps with the order-4 embedded weights instead.
+    """
+
+    tableau: ButcherTableau = eqx.field(static=True, default=DOPRI5_TABLEAU)
+    dexpinv: str = eqx.field(static=True, default="exact")
+    embedded: bool = eqx.field(static=True, default=False)
+
+    @property
+    def order(self) -> int:
+        return self.tableau.order_low if self.embedded else self.tableau.order
+
+    def step(self, scene, t, y, h):
+        kts, dxs = rkmk_stages(self.tableau, self.dexpinv == "exact", scene, t, y, h)
+        b = self.tableau.b_low if self.embedded else self.tableau.b
+        return retract(y, lincomb(b, kts, h), lincomb(b, dxs, h)), jnp.array(False)
+
+
+class RKMK32(RKMK45):
+    """RKMK with the Bogacki–Shampine 3(2) pair and the exact dexp^-1 (order 3)."""
+
+    tableau: ButcherTableau = eqx.field(static=True, default=BS3_TABLEAU)

@@ -1,0 +1,97 @@
+"""What a scene is: an initial state on SO(3)^k x R^n and a vector field.
+
+A scene bundles what one experiment needs and nothing more. Integrators only
+see the protocol below; `MechanicalScene` specialises it to one rigid body
+``(R, Omega)`` driven by a torque, plus optional *kinematic* rotations (such as a
+reference attitude ``Rd`` with ``Rd' = Rd hat(Omega_d(t))``) that ride along.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._dynamics import RigidBody
+from ._so3 import _is_concrete, _prep, orthogonality_error
+from ._state import LieState, LieTangent
+from ._types import Array
+
+
+class Scene(eqx.Module):
+    """Abstract scene: an initial state and a vector field on ``SO(3)^k x R^n``."""
+
+    y0: eqx.AbstractVar[LieState]
+
+    @abc.abstractmethod
+    def vector_field(self, t: Array, y: LieState) -> LieTangent:
+        """Body velocities of the rotations and derivatives of the vector part."""
+
+    @abc.abstractmethod
+    def observe(self, t: Array, y: LieState) -> dict[str, Array]:
+        """Named quantities saved in the `Trajectory` (at least ``R``, ``Omega``)."""
+
+
+class MechanicalScene(Scene):
+    """One rigid body ``(R, Omega)`` under a torque, plus kinematic rotations.
+
+    State layout: ``y.R[0]`` is the body attitude, ``y.R[1:]`` are kinematic
+    rotations moving with body rates `kinematic_rates`, and ``y.x[:3]`` is the
+    body angular velocity ``Omega``.
+
+    ``R' = R hat(Omega)``, ``J Omega' = torque - Omega x J Omega``.
+    """
+
+    body: eqx.AbstractVar[RigidBody]
+
+    def torque(self, t: Array, y: LieState) -> Array | None:
+        """Body torque ``M(t, y)``, shape `(3,)`; ``None`` for a torque-free body."""
+        return None
+
+    def kinematic_rates(self, t: Array, y: LieState) -> Array | None:
+        """Body rates of the kinematic rotations ``y.R[1:]``, shape `(k - 1, 3)`."""
+        return None
+
+    def vector_field(self, t: Array, y: LieState) -> LieTangent:
+        Omega = y.x[..., :3]
+        dOmega = self.body.euler_rhs(Omega, self.torque(t, y))
+        xi = Omega[..., None, :]
+        kin = self.kinematic_rates(t, y)
+        if kin is not None:
+            xi = jnp.concatenate([xi, kin], axis=-2)
+        dx = dOmega if y.x.shape[-1] == 3 else jnp.concatenate([dOmega, self.extra_rhs(t, y)], -1)
+        return LieTangent(xi, dx)
+
+    def extra_rhs(self, t: Array, y: LieState) -> Array:
+        """Derivative of ``y.x[3:]`` for scenes that carry more than ``Omega``."""
+        raise NotImplementedError
+
+    def observe(self, t: Array, y: LieState) -> dict[str, Array]:
+        return {"R": y.R[..., 0, :, :], "Omega": y.x[..., :3]}
+
+
+def check_rotation(R, name: str) -> Array:
+    """Validate an initial attitude: shape (3, 3), finite, on SO(3) (eager only)."""
+    R = _prep(R, name, (3, 3))
+    if R.shape != (3, 3):
+        raise ValueError(f"{name} must have shape (3, 3), got {tuple(R.shape)}")
+    if _is_concrete(R):
+        err = float(orthogonality_error(R))
+        det = float(np.linalg.det(np.asarray(R, dtype=np.float64)))
+        tol = 1e-5 if jnp.finfo(R.dtype).bits < 64 else 1e-8
+        if err > tol or det <= 0:
+            raise ValueError(
+                f"{name} is not a rotation (||R^T R - I|| = {err:.3g}, det = {det:.3g}); "
+                "use so3jax.project(R) to get the nearest rotation"
+            )
+    return R
+
+
+def check_vector(v, name: str) -> Array:
+    """Validate an initial vector: shape (3,), finite (eager only)."""
+    v = _prep(v, name, (3,))
+    if v.shape != (3,):
+        raise ValueError(f"{name} must have shape (3,), got {tuple(v.shape)}")
+    return v

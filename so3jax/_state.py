@@ -1,0 +1,52 @@
+"""States on the product manifold SO(3)^k x R^n, and their tangents."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._so3 import _exp, _mm
+from ._types import Array, Float
+
+
+class LieState(eqx.Module):
+    """A point of ``SO(3)^k x R^n``: ``k`` stacked rotations and a flat vector.
+
+    The free body is ``(R[None], Omega)``; a tracking scene is
+    ``(stack([R, Rd]), Omega)``. Integrators move the rotations along the group
+    (``R <- R exp(u)``) and the vector part additively.
+
+    **Fields:**
+
+    - `R`: rotations, shape `(..., k, 3, 3)`.
+    - `x`: vector part, shape `(..., n)`.
+    """
+
+    R: Float[Array, "*batch k 3 3"]
+    x: Float[Array, "*batch n"]
+
+
+class LieTangent(eqx.Module):
+    """A tangent vector in body (left-trivialised) form.
+
+    **Fields:**
+
+    - `xi`: body angular velocities of the rotations, shape `(..., k, 3)`
+      (``R_i' = R_i hat(xi_i)``).
+    - `dx`: derivative of the vector part, shape `(..., n)`.
+    """
+
+    xi: Float[Array, "*batch k 3"]
+    dx: Float[Array, "*batch n"]
+
+
+def retract(y: LieState, u: Array, dx: Array) -> LieState:
+    """``(R exp(u), x + dx)``: move along the group and in the vector part."""
+    return LieState(_mm(y.R, _exp(u)), y.x + dx)
+
+
+def all_finite(tree) -> Array:
+    """A scalar bool: every leaf of ``tree`` is finite."""
+    leaves = [jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(tree)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
