@@ -33,6 +33,15 @@ class Scene(eqx.Module):
     def observe(self, t: Array, y: LieState) -> dict[str, Array]:
         """Named quantities saved in the `Trajectory` (at least ``R``, ``Omega``)."""
 
+    def jump(self, t: Array, y: LieState) -> LieState:
+        """Discrete map applied after every step (hybrid systems); identity by default.
+
+        A hybrid controller keeps its logic variable in ``y.x`` (with zero
+        derivative) and flips it here, e.g. the hysteresis of a quaternion
+        controller.
+        """
+        return y
+
 
 class MechanicalScene(Scene):
     """One rigid body ``(R, Omega)`` under a torque, plus kinematic rotations.

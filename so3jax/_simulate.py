@@ -157,6 +157,7 @@ def _simulate(scene, method, dt, t0, n_save: int, save_every: int) -> Trajectory
         y, k, code, bad = carry
         t = t0 + k * dt
         y1, failed = method.step(scene, t, y, dt)
+        y1 = scene.jump(t + dt, y1)
         finite = all_finite(y1)
         newly = (code == OK) & (failed | ~finite)
         code = jnp.where(newly, jnp.where(finite, SOLVER_FAILED, NONFINITE), code)
