@@ -127,11 +127,12 @@ class CFTableau:
     def vector_a(self, i: int) -> tuple[float, ...]:
         """Plain RK coefficients of stage ``i`` (sum over its factors)."""
         factors = self.stages[i - 1]
-        return tuple(np.sum(np.array(factors), axis=0)) if factors else (0.0,) * i
+        # Python floats (weakly typed): NumPy float64 scalars would promote float32 states.
+        return tuple(map(float, np.sum(np.array(factors), axis=0))) if factors else (0.0,) * i
 
     @property
     def vector_b(self) -> tuple[float, ...]:
-        return tuple(np.sum(np.array(self.final), axis=0))
+        return tuple(map(float, np.sum(np.array(self.final), axis=0)))
 
 
 class AbstractLieSolver(eqx.Module):
