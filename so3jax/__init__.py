@@ -1,6 +1,18 @@
 """so3jax: rigid-body attitude dynamics and control on SO(3), in JAX."""
 
 from . import scenes as scenes
+from ._control import (
+    AbstractController as AbstractController,
+    AbstractReference as AbstractReference,
+    ConingRate as ConingRate,
+    ConstantRate as ConstantRate,
+    GeometricController as GeometricController,
+    GeometricGains as GeometricGains,
+    QuaternionController as QuaternionController,
+    SinusoidalRate as SinusoidalRate,
+    geometric_torque as geometric_torque,
+    tracking_errors as tracking_errors,
+)
 from ._dynamics import RigidBody as RigidBody
 from ._integrators import (
     CF4 as CF4,

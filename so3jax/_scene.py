@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._dynamics import RigidBody
-from ._so3 import _is_concrete, _prep, orthogonality_error
+from ._so3 import _is_concrete, _prep
 from ._state import LieState, LieTangent
 from ._types import Array
 
@@ -87,8 +87,10 @@ def check_rotation(R, name: str) -> Array:
     if R.shape != (3, 3):
         raise ValueError(f"{name} must have shape (3, 3), got {tuple(R.shape)}")
     if _is_concrete(R):
-        err = float(orthogonality_error(R))
-        det = float(np.linalg.det(np.asarray(R, dtype=np.float64)))
+        # NumPy, not jnp: under an active jit trace jnp ops on concrete arrays are staged.
+        Rn = np.asarray(R, dtype=np.float64)
+        err = float(np.linalg.norm(Rn.T @ Rn - np.eye(3)))
+        det = float(np.linalg.det(Rn))
         tol = 1e-5 if jnp.finfo(R.dtype).bits < 64 else 1e-8
         if err > tol or det <= 0:
             raise ValueError(

@@ -2,8 +2,26 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._control import (
+    AbstractController,
+    ConstantRate,
+    GeometricController,
+    GeometricGains,
+    QuaternionController,
+    SinusoidalRate,
+    _errors,
+)
 from ._dynamics import RigidBody
 from ._scene import MechanicalScene, check_rotation, check_vector
+from ._so3 import _exp, from_euler_zyx
 from ._state import LieState
 from ._types import ArrayLike
 
@@ -44,3 +62,299 @@ def free_body(inertia: ArrayLike | RigidBody, R0: ArrayLike, Omega0: ArrayLike) 
     Omega0 = check_vector(Omega0, "Omega0").astype(R0.dtype)
     body = _as_body(inertia, R0.dtype)
     return FreeBody(body=body, y0=LieState(R0[None], Omega0))
+
+
+# --------------------------------------------------------------------------
+# Attitude tracking
+# --------------------------------------------------------------------------
+
+#: Duration of the seed scenario, in seconds.
+SEED_DURATION = 10.0
+#: Quadrotor inertia of Lee, Leok & McClamroch (CDC 2010), kg m^2.
+SEED_INERTIA = (0.0820, 0.0845, 0.1377)
+#: Their attitude gains ``(k_R, k_Omega)``.
+SEED_GAINS = (8.81, 2.54)
+
+
+class Tracking(MechanicalScene):
+    """A rigid body tracking a reference attitude under a feedback controller.
+
+    State: ``y.R = stack([R, Rd])`` (the body attitude and the reference
+    attitude, which moves with ``Rd' = Rd hat(Omega_d(t))``) and
+    ``y.x = [Omega, memory]`` where ``memory`` (``controller.memory_size``
+    numbers, zero derivative) is updated after every step by `jump` (hybrid
+    controllers). `observe` saves ``R``, ``Omega``, ``Rd``, ``M`` (the torque)
+    and, in `Trajectory.extras`, ``e_R``, ``e_Omega`` and anything the
+    controller observes.
+
+    **Fields:**
+
+    - `body`: the `RigidBody`.
+    - `controller`: an `AbstractController`, e.g. `GeometricController`.
+    - `reference`: any function ``t -> (Omega_d(t), dOmega_d(t))``.
+    - `y0`: the initial `LieState`.
+    """
+
+    body: RigidBody
+    controller: AbstractController
+    reference: Callable
+    y0: LieState
+
+    def _reference(self, t, dtype):
+        Omega_d, dOmega_d = self.reference(t)
+        return jnp.asarray(Omega_d, dtype), jnp.asarray(dOmega_d, dtype)
+
+    def _parts(self, t, y):
+        R, Rd = y.R[..., 0, :, :], y.R[..., 1, :, :]
+        Omega_d, dOmega_d = self._reference(t, y.R.dtype)
+        return R, Rd, y.x[..., :3], y.x[..., 3:], Omega_d, dOmega_d
+
+    def _memory(self, mem):
+        return mem if self.controller.memory_size else None
+
+    def torque(self, t, y):
+        R, Rd, Omega, mem, Od, dOd = self._parts(t, y)
+        return self.controller(t, self.body, R, Omega, Rd, Od, dOd, self._memory(mem))
+
+    def kinematic_rates(self, t, y):
+        Omega_d, _ = self._reference(t, y.R.dtype)
+        return Omega_d[..., None, :]
+
+    def extra_rhs(self, t, y):
+        return jnp.zeros_like(y.x[..., 3:])
+
+    def jump(self, t, y):
+        if not self.controller.memory_size:
+            return y
+        mem = self.controller.update_memory(y.R[..., 0, :, :], y.R[..., 1, :, :], y.x[..., 3:])
+        return LieState(y.R, jnp.concatenate([y.x[..., :3], mem], -1))
+
+    def observe(self, t, y):
+        R, Rd, Omega, mem, Od, dOd = self._parts(t, y)
+        M = self.controller(t, self.body, R, Omega, Rd, Od, dOd, self._memory(mem))
+        e_R, e_Omega, _ = _errors(R, Omega, Rd, Od)
+        out = {"R": R, "Omega": Omega, "Rd": Rd, "M": M, "e_R": e_R, "e_Omega": e_Omega}
+        if self.controller.memory_size:
+            out.update(self.controller.observe(R, Rd, mem))
+        return out
+
+
+def _cast_floats(tree, dtype):
+    return jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, tree)
+
+
+def _check_reference(reference, dtype):
+    if not callable(reference):
+        raise TypeError(
+            "reference must be a function t -> (Omega_d(t), dOmega_d(t)), e.g. "
+            f"so3jax.ConstantRate(), got {type(reference).__name__}"
+        )
+    try:
+        out = jax.eval_shape(reference, jax.ShapeDtypeStruct((), dtype))
+    except Exception as e:
+        raise ValueError(f"reference(t) failed on a scalar time: {e}") from e
+    shapes = [getattr(o, "shape", None) for o in out] if isinstance(out, tuple | list) else None
+    if shapes is None or len(shapes) != 2 or any(s != (3,) for s in shapes):
+        raise ValueError(
+            "reference(t) must return (Omega_d, dOmega_d), two arrays of shape (3,); "
+            f"got {jax.tree.map(lambda o: o.shape, out)}"
+        )
+
+
+def tracking(
+    inertia: ArrayLike | RigidBody,
+    gains: GeometricGains | AbstractController,
+    R0: ArrayLike,
+    Omega0: ArrayLike,
+    Rd0: ArrayLike,
+    reference: Callable | None = None,
+) -> Tracking:
+    """Attitude tracking: a rigid body, a controller and a reference rate.
+
+    ``R' = R hat(Omega)``, ``J Omega' = M - Omega x J Omega`` with
+    ``M = controller(t, body, R, Omega, Rd, Omega_d(t), dOmega_d(t))``, and
+    ``Rd' = Rd hat(Omega_d(t))``.
+
+    **Arguments:**
+
+    - `inertia`: `(3, 3)` inertia, 3 principal moments, or a `RigidBody`.
+    - `gains`: a `GeometricGains` (the geometric controller) or any
+      `AbstractController` (e.g. `QuaternionController`).
+    - `R0`: initial attitude, shape `(3, 3)`, a rotation.
+    - `Omega0`: initial body angular velocity, shape `(3,)`.
+    - `Rd0`: initial reference attitude, shape `(3, 3)`, a rotation.
+    - `reference`: a function ``t -> (Omega_d(t), dOmega_d(t))`` (shapes
+      `(3,)`), e.g. `SinusoidalRate()`; default `ConstantRate()` (zero rate:
+      regulation to ``Rd0``).
+
+    The dtype of the scene is that of ``R0``; the controller's and the
+    reference's parameters are cast to it.
+
+    **Returns:** a `Tracking` scene for `simulate`.
+
+    References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control
+    of a quadrotor UAV on SE(3)", CDC 2010.
+    """
+    R0 = check_rotation(R0, "R0")
+    dtype = R0.dtype
+    Rd0 = check_rotation(Rd0, "Rd0").astype(dtype)
+    Omega0 = check_vector(Omega0, "Omega0").astype(dtype)
+    body = _as_body(inertia, dtype)
+    if isinstance(gains, GeometricGains):
+        controller = GeometricController(gains)
+    elif isinstance(gains, AbstractController):
+        controller = gains
+    else:
+        raise TypeError(
+            "gains must be a GeometricGains or a controller (an AbstractController), "
+            f"got {type(gains).__name__}"
+        )
+    controller = _cast_floats(controller, dtype)
+    reference = ConstantRate() if reference is None else reference
+    reference = _cast_floats(reference, dtype)
+    _check_reference(reference, dtype)
+    memory = controller.init_memory(R0, Rd0).astype(dtype)
+    y0 = LieState(jnp.stack([R0, Rd0]), jnp.concatenate([Omega0, memory]))
+    return Tracking(body=body, controller=controller, reference=reference, y0=y0)
+
+
+def _float_dtype(dtype):
+    return jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+
+
+def seed(dtype=None) -> Tracking:
+    """The seed scenario: geometric tracking of a sinusoidal reference by a quadrotor.
+
+    ``J = diag(0.0820, 0.0845, 0.1377)`` kg m^2, ``k_R = 8.81``,
+    ``k_Omega = 2.54`` (Lee, Leok & McClamroch, CDC 2010),
+    ``R0 = from_euler_zyx(pi/3, -pi/4, pi/6)`` (``Psi(R0, I) = 0.954``),
+    ``Omega0 = 0``, ``Rd0 = I``, reference `SinusoidalRate()` (0.5 rad/s,
+    0.2 Hz, phases ``(0, 2 pi/3, 4 pi/3)``). Run it for `SEED_DURATION` = 10 s.
+
+    **Arguments:**
+
+    - `dtype`: float dtype of the scene (default: JAX's default float).
+
+    **Returns:** a `Tracking` scene.
+    """
+    dtype = _float_dtype(dtype)
+    pi = jnp.asarray(math.pi, dtype)
+    R0 = from_euler_zyx(pi / 3, -pi / 4, pi / 6)
+    return tracking(
+        jnp.asarray(SEED_INERTIA, dtype),
+        GeometricGains(*SEED_GAINS),
+        R0,
+        jnp.zeros(3, dtype),
+        jnp.eye(3, dtype=dtype),
+        SinusoidalRate(),
+    )
+
+
+def near_pi(angle: float = math.pi - 0.01, controller=None, dtype=None) -> Tracking:
+    """Regulation from an almost 180-degree error: where the geometric controller is slow.
+
+    ``R0 = exp(angle e3)``, ``Rd0 = I``, ``Omega0 = 0``, zero reference rate,
+    the seed's body. With the geometric controller (default, the seed's
+    gains) ``|e_R| = sin(angle)`` is tiny near ``pi``: the error function
+    ``Psi`` leaves its maximum 2 slowly (exponentially, from a small push), then
+    converges: stability is almost global, not global (``Psi = 2`` is an
+    equilibrium set).
+
+    **Arguments:**
+
+    - `angle`: initial error angle in rad (default ``pi - 0.01``).
+    - `controller`: a `GeometricGains` or controller (default: the seed gains).
+    - `dtype`: float dtype.
+
+    **Returns:** a `Tracking` scene.
+    """
+    dtype = _float_dtype(dtype)
+    R0 = _exp(jnp.asarray([0.0, 0.0, angle], dtype))
+    controller = GeometricGains(*SEED_GAINS) if controller is None else controller
+    return tracking(
+        jnp.asarray(SEED_INERTIA, dtype),
+        controller,
+        R0,
+        jnp.zeros(3, dtype),
+        jnp.eye(3, dtype=dtype),
+        ConstantRate(),
+    )
+
+
+#: Initial condition of `unwinding`: error angle and spin rate about e3.
+UNWINDING_ANGLE, UNWINDING_RATE = 3.0, 25.0
+
+
+def unwinding(hysteresis: bool = False, delta: float = 0.2, dtype=None) -> Tracking:
+    """Quaternion feedback through the antipode: unwinding versus hysteresis.
+
+    The seed's body starts ``3.0`` rad from ``Rd0 = I`` about ``e3`` and spins
+    towards ``pi`` at ``25`` rad/s (a flip manoeuvre); the error crosses 180
+    degrees (``eta`` goes down to ``-0.32`` on the continuous lift of the error
+    quaternion). The continuous controller
+    (``hysteresis=False``, ``h = 1``) then pulls back through 180 degrees to
+    ``q = +1``, rotating the long way (unwinding); the hybrid one
+    (`QuaternionController` with hysteresis ``delta``) flips ``h`` once
+    ``eta < -delta`` and settles at ``q = -1``, the same attitude, the short
+    way. Gains ``k_q = 2 k_R``, ``k_Omega``: the seed's. Rotation travelled
+    (RKMK4, 4 s): 4.57 rad unwinding against 3.28 = 2 pi - 3.0 with hysteresis.
+
+    **Arguments:**
+
+    - `hysteresis`: use the hybrid controller (``True``) or ``h = 1`` (``False``).
+    - `delta`: hysteresis width.
+    - `dtype`: float dtype.
+
+    **Returns:** a `Tracking` scene with a `QuaternionController` (LGVI does not
+    apply: the state carries the controller's memory).
+
+    References: C. G. Mayhew, R. G. Sanfelice, A. R. Teel, IEEE TAC 56(11), 2011.
+    """
+    dtype = _float_dtype(dtype)
+    k_R, k_Omega = SEED_GAINS
+    ctrl = QuaternionController(2 * k_R, k_Omega, delta=delta, hysteresis=hysteresis)
+    return tracking(
+        jnp.asarray(SEED_INERTIA, dtype),
+        ctrl,
+        _exp(jnp.asarray([0.0, 0.0, UNWINDING_ANGLE], dtype)),
+        jnp.asarray([0.0, 0.0, UNWINDING_RATE], dtype),
+        jnp.eye(3, dtype=dtype),
+        ConstantRate(),
+    )
+
+
+def dzhanibekov(
+    inertia: ArrayLike = (1.0, 2.0, 3.0),
+    spin: float = 5.0,
+    perturbation: float = 0.01,
+    dtype=None,
+) -> FreeBody:
+    """The intermediate-axis (Dzhanibekov, tennis-racket) instability.
+
+    A torque-free body spins at ``spin`` rad/s about its intermediate principal
+    axis (``e2`` with the default moments ``(1, 2, 3)``), with a small
+    transverse rate ``perturbation * spin`` about ``e1`` and ``e3``. Linearised,
+    the perturbation grows like ``exp(lambda t)`` with
+    ``lambda = spin sqrt((J2 - J1)(J3 - J2) / (J1 J3))``: the body flips
+    (``Omega_2`` changes sign) periodically, about every
+    ``~ 2 ln(1/perturbation) / lambda`` s (a few seconds by default), while
+    energy and angular momentum stay constant.
+
+    **Arguments:**
+
+    - `inertia`: principal moments with the intermediate one second, shape `(3,)`.
+    - `spin`: spin rate about ``e2``.
+    - `perturbation`: relative transverse rate.
+    - `dtype`: float dtype.
+
+    **Returns:** a `FreeBody` scene.
+    """
+    dtype = _float_dtype(dtype)
+    Jn = np.asarray(inertia, dtype=np.float64)
+    if Jn.shape != (3,) or not Jn[0] < Jn[1] < Jn[2]:
+        raise ValueError(
+            f"inertia must be 3 principal moments J1 < J2 < J3 (e2 intermediate), got {Jn}"
+        )
+    J = jnp.asarray(inertia, dtype)
+    Omega0 = jnp.asarray([perturbation * spin, spin, perturbation * spin], dtype)
+    return free_body(J, jnp.eye(3, dtype=dtype), Omega0)

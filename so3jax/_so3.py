@@ -53,9 +53,25 @@ def _prep(x: ArrayLike, name: str, trailing: tuple[int, ...]) -> Array:
     if x.ndim < k or tuple(x.shape[x.ndim - k :]) != trailing:
         want = "(..., " + ", ".join(map(str, trailing)) + ")"
         raise ValueError(f"{name} must have shape {want}, got shape {tuple(x.shape)}")
-    if _is_concrete(x) and not bool(jnp.all(jnp.isfinite(x))):
+    # NumPy, not jnp: under an active jit trace jnp ops on concrete arrays are staged.
+    if _is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
         raise ValueError(f"{name} contains NaN or inf")
     return x
+
+
+# Eager value checks run in NumPy on the concrete array: `jnp` ops on a concrete
+# constant inside a trace (a `lax.scan`/`cond` body, `eqx.filter_jit`) are staged,
+# and `bool()` of the result would raise a TracerBoolConversionError.
+
+
+def _np_norm2(x: Array) -> np.ndarray:
+    x = np.asarray(x)
+    return np.sum(x * x, axis=-1)
+
+
+def _np_det(A: Array) -> np.ndarray:
+    A = np.asarray(A)
+    return np.sum(A[..., 0, :] * np.cross(A[..., 1, :], A[..., 2, :]), axis=-1)
 
 
 def _common_dtype(*xs: Array):
@@ -301,6 +317,26 @@ def _exp(w: Array) -> Array:
     return (1.0 - B * t[..., None, None]) * eye + A * _hat(w) + B * wwT
 
 
+def _expm1(w: Array) -> Array:
+    """``exp(w) - I = A hat(w) + B hat(w)^2``, accurate relative to ``|w|``."""
+    t = _dot(w, w)
+    A = _coeffs(t, "A")[..., None, None]
+    B = _coeffs(t, "B")[..., None, None]
+    wwT = w[..., :, None] * w[..., None, :]
+    return A * _hat(w) + B * (wwT - t[..., None, None] * _eye_like(w, w.shape[:-1]))
+
+
+def _rmul_exp(R: Array, w: Array) -> Array:
+    """``R exp(w)`` computed as ``R + R (exp(w) - I)``.
+
+    For the small increments of a time step this keeps the rounding error of
+    the update proportional to ``|w|``: forming ``exp(w)`` first would round
+    its entries near 1 to ``eps`` each step, the same way every step when the
+    rate is steady, so float32 runs would drift off the group linearly in time.
+    """
+    return R + _mm(R, _expm1(w))
+
+
 def exp(w: Vec3) -> Rot:
     """Exponential map so(3) -> SO(3) (Rodrigues' formula).
 
@@ -482,7 +518,7 @@ def from_quat(q: Quat) -> Rot:
     **Returns:** rotation matrix, shape `(..., 3, 3)`.
     """
     q = _prep(q, "q", (4,))
-    if _is_concrete(q) and bool(jnp.any(_dot(q, q) == 0)):
+    if _is_concrete(q) and np.any(_np_norm2(q) == 0):
         raise ValueError("q has zero norm; a quaternion must be non-zero to define a rotation")
     return _from_quat(q)
 
@@ -532,7 +568,7 @@ def from_axis_angle(axis: Vec3, angle: Scalar) -> Rot:
     axis = _prep(axis, "axis", (3,))
     angle = _prep(angle, "angle", ())
     n2 = _dot(axis, axis)
-    if _is_concrete(axis) and bool(jnp.any(n2 == 0)):
+    if _is_concrete(axis) and np.any(_np_norm2(axis) == 0):
         raise ValueError("axis has zero norm; give a non-zero rotation axis")
     u = axis / jnp.sqrt(n2)[..., None]
     return _exp(u * angle[..., None])
@@ -708,7 +744,7 @@ def project(M: Mat3) -> Rot:
     **Returns:** rotation matrix, shape `(..., 3, 3)`.
     """
     M = _prep(M, "M", (3, 3))
-    if _is_concrete(M) and bool(jnp.any(_det(M) <= 0)):
+    if _is_concrete(M) and np.any(_np_det(M) <= 0):
         raise ValueError(
             "project needs det(M) > 0: a matrix with det <= 0 has no unique nearest rotation "
             "(it is a reflection or singular)"
@@ -751,9 +787,10 @@ def geodesic_distance(R1: Rot, R2: Rot) -> Scalar:
     R2 = _prep(R2, "R2", (3, 3))
     q = _to_quat(_mm(_mT(R1), R2))
     n2 = _dot(q[..., 1:], q[..., 1:])
-    pos = n2 > 0
-    n = jnp.sqrt(jnp.where(pos, n2, 1.0))
-    return jnp.where(pos, 2.0 * jnp.arctan2(n, q[..., 0]), 0.0)
+    # Test `n2 == 0` rather than `n2 > 0` so that NaN input (under jit) gives NaN, not 0.
+    zero = n2 == 0
+    n = jnp.sqrt(jnp.where(zero, 1.0, n2))
+    return jnp.where(zero, 0.0, 2.0 * jnp.arctan2(n, q[..., 0]))
 
 
 def attitude_error_function(R: Rot, Rd: Rot) -> Scalar:

@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._so3 import _exp, _mm
+from ._so3 import _rmul_exp
 from ._types import Array, Float
 
 
@@ -43,7 +43,7 @@ class LieTangent(eqx.Module):
 
 def retract(y: LieState, u: Array, dx: Array) -> LieState:
     """``(R exp(u), x + dx)``: move along the group and in the vector part."""
-    return LieState(_mm(y.R, _exp(u)), y.x + dx)
+    return LieState(_rmul_exp(y.R, u), y.x + dx)
 
 
 def all_finite(tree) -> Array:

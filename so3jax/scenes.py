@@ -1,4 +1,18 @@
 """Ready-made scenes for `so3jax.simulate` (public namespace ``so3jax.scenes``)."""
 
 from ._scene import MechanicalScene as MechanicalScene, Scene as Scene
-from ._scenes import FreeBody as FreeBody, free_body as free_body
+from ._scenes import (
+    SEED_DURATION as SEED_DURATION,
+    SEED_GAINS as SEED_GAINS,
+    SEED_INERTIA as SEED_INERTIA,
+    UNWINDING_ANGLE as UNWINDING_ANGLE,
+    UNWINDING_RATE as UNWINDING_RATE,
+    FreeBody as FreeBody,
+    Tracking as Tracking,
+    dzhanibekov as dzhanibekov,
+    free_body as free_body,
+    near_pi as near_pi,
+    seed as seed,
+    tracking as tracking,
+    unwinding as unwinding,
+)

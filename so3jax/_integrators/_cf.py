@@ -16,7 +16,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._so3 import _exp, _mm
+from .._so3 import _rmul_exp
 from .._state import LieState
 from ._base import AbstractLieSolver, CFTableau, lincomb
 
@@ -25,7 +25,7 @@ def _move(R, factors, xis, h):
     for alpha in factors:
         u = lincomb(alpha, xis, h)
         if u is not None:
-            R = _mm(R, _exp(u))
+            R = _rmul_exp(R, u)
     return R
 
 

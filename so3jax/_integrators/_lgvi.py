@@ -31,7 +31,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._scene import MechanicalScene
-from .._so3 import _cross, _det, _dot, _exp, _hat, _mm, _mtv, _mv
+from .._so3 import _cross, _det, _dot, _hat, _mm, _mtv, _mv, _rmul_exp
 from .._state import LieState
 from ._base import AbstractLieSolver
 
@@ -55,13 +55,15 @@ def _residual_jac(f, J, a):
     return 2.0 * (J + _mm(_hat(f), J) - _hat(Jf)) - 2.0 * a[..., :, None] * f[..., None, :]
 
 
-def _cayley(f):
-    """``cay(f) = (I + hat f)(I - hat f)^-1 = I + 2 (hat f + hat f^2) / (1 + |f|^2)``."""
+def _cayley_m1(f):
+    """``cay(f) - I``, where ``cay(f) = (I + hat f)(I - hat f)^-1``.
+
+    ``cay(f) = I + 2 (hat f + hat f^2) / (1 + |f|^2)``.
+    """
     t = _dot(f, f)
     c = (2.0 / (1.0 + t))[..., None, None]
-    eye = jnp.eye(3, dtype=f.dtype)
-    hat2 = f[..., :, None] * f[..., None, :] - t[..., None, None] * eye
-    return eye + c * (_hat(f) + hat2)
+    hat2 = f[..., :, None] * f[..., None, :] - t[..., None, None] * jnp.eye(3, dtype=f.dtype)
+    return c * (_hat(f) + hat2)
 
 
 class LGVI(AbstractLieSolver):
@@ -103,13 +105,14 @@ class LGVI(AbstractLieSolver):
         eps = jnp.finfo(f.dtype).eps
         scale = jnp.sqrt(_dot(a, a)) * (1.0 + _dot(f, f)) + jnp.finfo(f.dtype).tiny
         failed = ~(jnp.sqrt(_dot(res, res)) <= 100 * eps * scale)
-        F = _cayley(f)
-        R_body = _mm(y.R[0], F)
+        Fm1 = _cayley_m1(f)  # F - I: the update R + R (F - I) rounds in proportion to |f|
+        F = Fm1 + jnp.eye(3, dtype=f.dtype)
+        R_body = y.R[0] + _mm(y.R[0], Fm1)
         kin = scene.kinematic_rates(t + 0.5 * h, y)
         if kin is None:
             R1 = R_body[None]
         else:
-            R1 = jnp.concatenate([R_body[None], _mm(y.R[1:], _exp(h * kin))], 0)
+            R1 = jnp.concatenate([R_body[None], _rmul_exp(y.R[1:], h * kin)], 0)
         Pi_half = _mtv(F, p)
         if M0 is None:
             Pi1 = Pi_half

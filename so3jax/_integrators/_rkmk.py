@@ -38,8 +38,14 @@ def _dexpinv_truncated(u, v, order: int):
     return out
 
 
-def rkmk_stages(tableau: ButcherTableau, exact: bool, scene, t, y: LieState, h):
-    """Run the stages; return the pulled-back velocities and vector derivatives."""
+def rkmk_stages(
+    tableau: ButcherTableau, exact: bool, scene, t, y: LieState, h, f0=None, return_last=False
+):
+    """Run the stages; return the pulled-back velocities and vector derivatives.
+
+    ``f0`` (a `LieTangent` at ``(t, y)``) replaces the first evaluation (FSAL);
+    with ``return_last`` the raw `LieTangent` of the last stage is returned too.
+    """
     order = tableau.order
     kts, dxs = [], []
     for i in range(tableau.stages):
@@ -52,7 +58,10 @@ def rkmk_stages(tableau: ButcherTableau, exact: bool, scene, t, y: LieState, h):
             u = jnp.zeros_like(y.R[..., 0]) if u is None else u
             dx = jnp.zeros_like(y.x) if dx is None else dx
             Yi = retract(y, u, dx)
-        f = scene.vector_field(t + tableau.c[i] * h, Yi)
+        if i == 0 and f0 is not None:
+            f = f0
+        else:
+            f = scene.vector_field(t + tableau.c[i] * h, Yi)
         if u is None:
             kt = f.xi
         elif exact:
@@ -61,6 +70,8 @@ def rkmk_stages(tableau: ButcherTableau, exact: bool, scene, t, y: LieState, h):
             kt = _dexpinv_truncated(u, f.xi, order)
         kts.append(kt)
         dxs.append(f.dx)
+    if return_last:
+        return kts, dxs, f
     return kts, dxs
 
 
