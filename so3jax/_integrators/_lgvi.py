@@ -106,14 +106,13 @@ class LGVI(AbstractLieSolver):
         scale = jnp.sqrt(_dot(a, a)) * (1.0 + _dot(f, f)) + jnp.finfo(f.dtype).tiny
         failed = ~(jnp.sqrt(_dot(res, res)) <= 100 * eps * scale)
         Fm1 = _cayley_m1(f)  # F - I: the update R + R (F - I) rounds in proportion to |f|
-        F = Fm1 + jnp.eye(3, dtype=f.dtype)
         R_body = y.R[0] + _mm(y.R[0], Fm1)
         kin = scene.kinematic_rates(t + 0.5 * h, y)
         if kin is None:
             R1 = R_body[None]
         else:
             R1 = jnp.concatenate([R_body[None], _rmul_exp(y.R[1:], h * kin)], 0)
-        Pi_half = _mtv(F, p)
+        Pi_half = _mtv(Fm1 + jnp.eye(3, dtype=f.dtype), p)
         if M0 is None:
             Pi1 = Pi_half
         else:
