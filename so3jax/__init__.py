@@ -26,7 +26,13 @@ from ._integrators import (
     ButcherTableau as ButcherTableau,
     CFTableau as CFTableau,
     CommutatorFree as CommutatorFree,
+    DiffraxLieAdaptiveSolver as DiffraxLieAdaptiveSolver,
+    DiffraxLieSolver as DiffraxLieSolver,
     LieEuler as LieEuler,
+    LieTerm as LieTerm,
+    RKMKTsit5 as RKMKTsit5,
+    diffrax_solver as diffrax_solver,
+    lie_term as lie_term,
 )
 from ._simulate import Status as Status, Trajectory as Trajectory, simulate as simulate
 from ._so3 import (

@@ -108,10 +108,17 @@ def _check_dt(dt, dtype) -> Array:
 def simulate(
     scene: Scene,
     method: AbstractLieSolver,
-    dt: float | Array,
-    n_steps: int,
+    dt: float | Array | None = None,
+    n_steps: int | None = None,
     save_every: int = 1,
     t0: float | Array = 0.0,
+    *,
+    t1: float | Array | None = None,
+    rtol: float | Array | None = None,
+    atol: float | Array | None = None,
+    saveat: int | Array | None = None,
+    max_steps: int = 4096,
+    adjoint=None,
 ) -> Trajectory:
     """Integrate a scene with a fixed-step Lie-group method.
 
@@ -131,7 +138,37 @@ def simulate(
 
     **Returns:** a `Trajectory` with ``n_steps // save_every + 1`` points and a
     `Status` saying whether the run stayed finite and where it stopped if not.
+
+    **Adaptive mode:** give ``t1`` and tolerances ``rtol`` / ``atol`` instead of
+    ``n_steps`` (with an embedded pair: `RKMK45()`, `RKMKTsit5()`, `RKMK32()`); ``dt`` is
+    then the optional initial step, ``saveat`` the saved times (a count or an array)
+    and ``max_steps`` the step budget. See `so3jax._adaptive.simulate_adaptive`.
     """
+    if t1 is not None or rtol is not None or atol is not None:
+        from ._adaptive import simulate_adaptive
+
+        if n_steps is not None or save_every != 1:
+            raise ValueError(
+                "adaptive mode (t1, rtol, atol) takes no n_steps or save_every: use saveat"
+            )
+        if t1 is None:
+            raise ValueError("adaptive mode (rtol/atol given) needs the final time t1")
+        return simulate_adaptive(
+            scene,
+            method,
+            t1,
+            rtol,
+            atol,
+            t0=t0,
+            saveat=saveat,
+            dt0=dt,
+            max_steps=max_steps,
+            adjoint=adjoint,
+        )
+    if dt is None or n_steps is None:
+        raise ValueError("pass dt and n_steps (fixed steps), or t1 and rtol/atol (adaptive steps)")
+    if saveat is not None:
+        raise ValueError("saveat is for adaptive mode (t1, rtol, atol); use save_every")
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a so3jax scene, got {type(scene).__name__}")
     if not isinstance(method, AbstractLieSolver):

@@ -14,6 +14,17 @@ from ._cf import (
     CommutatorFree as CommutatorFree,
     LieEuler as LieEuler,
 )
+from ._diffrax import (
+    TSIT5_TABLEAU as TSIT5_TABLEAU,
+    DiffraxLieAdaptiveSolver as DiffraxLieAdaptiveSolver,
+    DiffraxLieSolver as DiffraxLieSolver,
+    LieInterpolation as LieInterpolation,
+    LieTerm as LieTerm,
+    RKMKTsit5 as RKMKTsit5,
+    SceneVectorField as SceneVectorField,
+    diffrax_solver as diffrax_solver,
+    lie_term as lie_term,
+)
 from ._lgvi import LGVI as LGVI
 from ._rkmk import (
     BS3_TABLEAU as BS3_TABLEAU,

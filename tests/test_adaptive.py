@@ -1,0 +1,315 @@
+"""Adaptive Lie-group stepping: embedded RKMK pairs as diffrax solvers, `simulate` with tolerances.
+
+References are independent of the code under test: the exact free-body motion
+(Jacobi elliptic functions, `exact_rigid_body.py`), a plain diffrax Tsit5 run in
+the ambient space R^9 x R^9 x R^3 written here, and central finite differences.
+"""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from exact_rigid_body import ExactFreeBody
+
+import so3jax as s
+
+MOMENTS = np.array([1.0, 2.0, 3.0])
+R0 = np.asarray(s.exp(jnp.array([0.3, 0.2, -0.1])))
+OMEGA0 = np.array([0.5, 1.0, -0.3])
+
+
+@pytest.fixture(scope="module")
+def free():
+    return s.scenes.free_body(jnp.asarray(MOMENTS), jnp.asarray(R0), jnp.asarray(OMEGA0))
+
+
+@pytest.fixture(scope="module")
+def exact():
+    return ExactFreeBody(MOMENTS, R0, OMEGA0)
+
+
+def _slope(x, y):
+    return np.polyfit(np.log(np.asarray(x)), np.log(np.asarray(y)), 1)[0]
+
+
+def _angle(R, R_ref):
+    return np.asarray(s.geodesic_distance(jnp.asarray(R), jnp.asarray(R_ref)))
+
+
+# --------------------------------------------------------------------------
+# Fixed-step orders through the diffrax solver path
+# --------------------------------------------------------------------------
+
+
+@eqx.filter_jit
+def _fixed_run(scene, method, h, T, thetas):
+    sol = diffrax.diffeqsolve(
+        s.lie_term(scene),
+        s.diffrax_solver(method),
+        0.0,
+        T,
+        h,
+        scene.y0,
+        stepsize_controller=diffrax.ConstantStepSize(),
+        saveat=diffrax.SaveAt(ts=thetas * T),
+        max_steps=128,
+    )
+    return sol.ys.R[:, 0], sol.ys.x
+
+
+# Saved times: step ends (theta = 1) and points inside steps (dense output) for every h below.
+THETAS = jnp.array([0.13, 0.5, 0.61, 0.9, 1.0])
+
+
+@pytest.mark.parametrize(
+    "method, order, dense_order, hs",
+    [
+        (s.RKMK45(), 5, 5, (0.4, 0.2, 0.1, 0.05)),
+        (s.RKMK45(embedded=True), 4, 4, (0.4, 0.2, 0.1, 0.05)),
+        (s.RKMK32(), 3, 3, (0.2, 0.1, 0.05, 0.025)),
+        (s.RKMK32(embedded=True), 2, 2, (0.2, 0.1, 0.05, 0.025)),
+        (s.RKMKTsit5(), 5, 4, (0.2, 0.1, 0.05, 0.025)),
+    ],
+    ids=["RKMK45-5", "RKMK45-embedded-4", "RKMK32-3", "RKMK32-embedded-2", "RKMKTsit5-5"],
+)
+def test_fixed_step_orders_of_both_members(free, exact, method, order, dense_order, hs):
+    # Through diffrax with ConstantStepSize. At the step ends the error is O(h^p); inside
+    # the steps (dense output) it is O(h^p) + the interpolant's local error: O(h^5) for
+    # the quartic of RKMK45, O(h^4) for the cubic Hermite interpolants in the algebra of
+    # the others. A linear blend of the end points would give O(h^2).
+    T = 3.2
+    ts = np.asarray(THETAS) * T
+    R_ref, W_ref = exact.state(ts)
+    end, inside = [], []
+    for h in hs:
+        R, x = _fixed_run(free, method, jnp.asarray(h), jnp.asarray(T), THETAS)
+        assert np.max(np.asarray(s.orthogonality_error(R))) < 1e-14
+        err = np.maximum(_angle(R, R_ref), np.max(np.abs(np.asarray(x) - W_ref), -1))
+        end.append(err[-1])
+        inside.append(np.max(err[:-1]))
+    assert end[-1] > 1e-13  # still above round-off: the slope is meaningful
+    assert order - 0.3 < _slope(hs, end) < order + 0.6, end
+    assert dense_order - 0.5 < _slope(hs, inside) < dense_order + 0.6, inside
+
+
+def test_solver_kinds():
+    assert isinstance(s.diffrax_solver(s.RKMK45()), diffrax.AbstractAdaptiveSolver)
+    assert isinstance(s.diffrax_solver(s.RKMK32()), s.DiffraxLieAdaptiveSolver)
+    assert isinstance(s.diffrax_solver(s.RKMKTsit5()), s.DiffraxLieAdaptiveSolver)
+    for m in (s.RKMK4(), s.CG3(), s.LGVI(), s.RKMK45(embedded=True)):
+        solver = s.diffrax_solver(m)
+        assert isinstance(solver, s.DiffraxLieSolver)
+        assert not isinstance(solver, diffrax.AbstractAdaptiveSolver)
+
+
+def test_fixed_step_wrapper_matches_simulate(free):
+    # The diffrax wrapper of a fixed-step method takes exactly the steps `simulate`
+    # takes; LGVI also needs the scene itself (body, torque), found inside the term.
+    h, n = 0.05, 40
+    R, x = _fixed_run(free, s.LGVI(), jnp.asarray(h), jnp.asarray(h * n), THETAS)
+    tr = s.simulate(free, s.LGVI(), h, n)
+    assert np.max(np.abs(np.asarray(R[-1]) - np.asarray(tr.R[-1]))) < 1e-12
+    assert np.max(np.abs(np.asarray(x[-1]) - np.asarray(tr.Omega[-1]))) < 1e-12
+    assert np.max(np.asarray(s.orthogonality_error(R))) < 1e-14
+
+
+# --------------------------------------------------------------------------
+# Adaptive: tolerance proportionality, on the group at every saved time
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("method", [s.RKMK45(), s.RKMK32()], ids=["RKMK45", "RKMK32"])
+def test_tolerance_proportionality_and_group(free, exact, method):
+    T = 10.0
+    ts = np.linspace(0.0, T, 57)  # not aligned with the steps: dense output
+    R_ref, W_ref = exact.state(ts)
+    tols = (1e-5, 1e-6, 1e-7, 1e-8)
+    final, steps = [], []
+    for tol in tols:
+        tr = s.simulate(free, method, t1=T, rtol=tol, atol=tol, saveat=ts)
+        assert tr.status.message() == "finite to the end"
+        assert np.max(np.asarray(s.orthogonality_error(tr.R))) <= 1e-13
+        err = _angle(tr.R, R_ref)
+        # Every saved point, interpolated ones included, is as accurate as the tolerance says.
+        assert np.max(err) < 300 * tol
+        assert np.max(np.abs(np.asarray(tr.Omega) - W_ref)) < 300 * tol
+        final.append(err[-1])
+        steps.append(int(tr.extras["num_accepted_steps"]))
+    assert 0.7 < _slope(tols, final) < 1.3, final
+    assert steps == sorted(steps)  # tighter tolerance, more steps
+
+
+def test_extras_and_counts(free):
+    ts = np.linspace(0.0, 10.0, 57)  # the shapes of the test above: no new compilation
+    tr = s.simulate(free, s.RKMK45(), t1=10.0, rtol=1e-7, saveat=ts)
+    ex = {k: int(v) for k, v in tr.extras.items()}
+    assert ex["num_steps"] == ex["num_accepted_steps"] + ex["num_rejected_steps"]
+    # FSAL: 1 evaluation at the start, 2 for the initial step choice, 6 per attempted step.
+    assert ex["num_fevals"] == 6 * ex["num_steps"] + 3
+    assert tr.R.shape == (57, 3, 3) and tr.Omega.shape == (57, 3) and tr.t.shape == (57,)
+    assert np.allclose(tr.t, ts)
+    # The saved state at t1 restarts the run.
+    assert np.allclose(tr.y.R[0], tr.R[-1]) and np.allclose(tr.y.x, tr.Omega[-1])
+
+
+def test_max_steps_flags_the_run(free):
+    tr = s.simulate(free, s.RKMK32(), t1=10.0, rtol=1e-10, saveat=11, max_steps=5)
+    assert int(tr.status.code) == 1 and not bool(tr.status.ok)
+    assert int(tr.status.step) >= 1
+    assert np.all(np.isnan(np.asarray(tr.R[-1])))
+    assert np.isfinite(np.asarray(tr.R[0])).all()
+
+
+def test_backward_in_time_returns(free):
+    # Integrate forward, then backward with diffrax's time reversal: back to the start.
+    term, solver = s.lie_term(free), s.diffrax_solver(s.RKMK45())
+    ctrl = diffrax.PIDController(rtol=1e-10, atol=1e-10)
+    run = eqx.filter_jit(
+        lambda t0, t1, y0: diffrax.diffeqsolve(
+            term, solver, t0, t1, None, y0, stepsize_controller=ctrl
+        )
+    )
+    zero, three = jnp.asarray(0.0), jnp.asarray(3.0)
+    y1 = jax.tree.map(lambda a: a[-1], run(zero, three, free.y0).ys)
+    bwd = run(three, zero, y1)
+    assert np.max(np.abs(np.asarray(bwd.ys.R[-1] - free.y0.R))) < 1e-8
+    assert np.max(np.abs(np.asarray(bwd.ys.x[-1] - free.y0.x))) < 1e-8
+
+
+def test_vmap_over_scenes_matches_single(free):
+    Omegas = jnp.array([[0.5, 1.0, -0.3], [1.0, -0.2, 0.4]])
+    scenes = jax.vmap(lambda W: eqx.tree_at(lambda sc: sc.y0.x, free, W))(Omegas)
+    run = lambda sc: s.simulate(sc, s.RKMK32(), t1=2.0, rtol=1e-7, saveat=3)
+    batch = eqx.filter_vmap(run)(scenes)
+    for i in range(2):
+        one = run(eqx.tree_at(lambda sc: sc.y0.x, free, Omegas[i]))
+        assert np.allclose(batch.R[i], one.R, atol=1e-13)
+
+
+# --------------------------------------------------------------------------
+# Against ambient diffrax on the seed scenario
+# --------------------------------------------------------------------------
+
+
+def _ambient_tsit5(scene, T, ts, tol):
+    # The same equations, forgetting the group: R' = R hat(Omega), Rd' = Rd hat(Omega_d).
+    def f(t, y, args):
+        R, x = y
+        tan = scene.vector_field(t, s.LieState(R, x))
+        return R @ s.hat(tan.xi), tan.dx
+
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(f),
+        diffrax.Tsit5(),
+        0.0,
+        T,
+        None,
+        (scene.y0.R, scene.y0.x),
+        stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+        saveat=diffrax.SaveAt(ts=ts),
+        max_steps=100_000,
+    )
+    return sol.ys
+
+
+def test_seed_agrees_with_ambient_tsit5():
+    scene = s.scenes.seed()
+    T = s.scenes.SEED_DURATION
+    ts = jnp.linspace(0.0, T, 21)
+    tol = 1e-9
+    tr = s.simulate(scene, s.RKMK45(), t1=T, rtol=tol, atol=tol, saveat=ts)
+    R_amb, x_amb = _ambient_tsit5(scene, T, ts, tol)
+    # Both are ~1e-10 accurate at this tolerance (global error ~ tolerance).
+    assert np.max(np.abs(np.asarray(tr.R - R_amb[:, 0]))) < 1e-8
+    assert np.max(np.abs(np.asarray(tr.Rd - R_amb[:, 1]))) < 1e-8
+    assert np.max(np.abs(np.asarray(tr.Omega - x_amb[:, :3]))) < 1e-8
+    assert np.max(np.asarray(s.orthogonality_error(tr.R))) <= 1e-13
+    assert np.max(np.asarray(s.orthogonality_error(tr.Rd))) <= 1e-13
+    assert tr.M.shape == (21, 3)
+
+
+# --------------------------------------------------------------------------
+# Gradients through the adaptive path
+# --------------------------------------------------------------------------
+
+
+def test_gradient_wrt_gains_matches_finite_differences():
+    # Reverse mode through diffrax's RecursiveCheckpointAdjoint (the step sizes are
+    # constants to it) against central differences of the whole adaptive run (whose
+    # step sizes move with the gains): both tend to the exact derivative as tol -> 0.
+    base = s.scenes.seed()
+    T, tol = 1.0, 1e-9
+
+    def cost(gains):
+        scene = eqx.tree_at(
+            lambda sc: (sc.controller.gains.k_R, sc.controller.gains.k_Omega),
+            base,
+            (gains[0], gains[1]),
+        )
+        tr = s.simulate(
+            scene,
+            s.RKMK32(),
+            t1=T,
+            rtol=tol,
+            atol=tol,
+            saveat=5,
+            max_steps=2048,
+            adjoint=diffrax.RecursiveCheckpointAdjoint(),
+        )
+        psi = s.attitude_error_function(tr.R, tr.Rd)
+        return jnp.mean(psi) + 0.1 * jnp.mean(jnp.sum(tr.Omega**2, -1))
+
+    g0 = jnp.array(s.scenes.SEED_GAINS)
+    grad = np.asarray(jax.jit(jax.grad(cost))(g0))
+    cost_j = jax.jit(cost)
+    assert np.isfinite(float(cost_j(g0)))
+    fd = []
+    for i in range(2):
+        e = 1e-4 * float(g0[i])
+        dg = jnp.zeros(2).at[i].set(e)
+        fd.append((float(cost_j(g0 + dg)) - float(cost_j(g0 - dg))) / (2 * e))
+    fd = np.array(fd)
+    assert np.all(np.abs(grad) > 1e-3)  # a real signal
+    np.testing.assert_allclose(grad, fd, rtol=1e-6)
+
+
+# --------------------------------------------------------------------------
+# Errors
+# --------------------------------------------------------------------------
+
+
+def test_bad_input(free):
+    with pytest.raises(ValueError, match="embedded"):
+        s.simulate(free, s.RKMK4(), t1=1.0, rtol=1e-6)
+    with pytest.raises(ValueError, match="t1"):
+        s.simulate(free, s.RKMK45(), rtol=1e-6)
+    with pytest.raises(ValueError, match="rtol"):
+        s.simulate(free, s.RKMK45(), t1=1.0, rtol=-1.0)
+    with pytest.raises(ValueError, match="t1 must be greater"):
+        s.simulate(free, s.RKMK45(), t1=0.0, rtol=1e-6)
+    with pytest.raises(ValueError, match="saveat"):
+        s.simulate(free, s.RKMK45(), t1=1.0, rtol=1e-6, saveat=jnp.array([0.0, 2.0]))
+    with pytest.raises(ValueError, match="n_steps"):
+        s.simulate(free, s.RKMK45(), t1=1.0, rtol=1e-6, n_steps=10)
+    with pytest.raises(ValueError, match="dt and n_steps"):
+        s.simulate(free, s.RKMK45())
+    with pytest.raises(ValueError, match="method"):
+        s.diffrax_solver("RKMK45")
+    with pytest.raises(ValueError, match="scene"):
+        s.lie_term(lambda t, y, a: y)
+    with pytest.raises(ValueError, match="jump"):
+        s.simulate(s.scenes.unwinding(hysteresis=True), s.RKMK45(), t1=1.0, rtol=1e-6)
+
+
+def test_wrong_term_is_refused(free):
+    solver = s.diffrax_solver(s.RKMK45())
+    # A plain ODETerm is not a LieTerm: diffrax refuses the pairing.
+    plain = diffrax.ODETerm(lambda t, y, args: y)
+    with pytest.raises(ValueError, match="not compatible"):
+        diffrax.diffeqsolve(plain, solver, 0.0, 1.0, 0.1, free.y0)
+    # A LieTerm whose field returns the wrong thing gets a clear message.
+    bad = s.LieTerm(lambda t, y, args: y)
+    with pytest.raises(ValueError, match="LieTangent"):
+        diffrax.diffeqsolve(bad, solver, 0.0, 1.0, 0.1, free.y0)
