@@ -1,6 +1,7 @@
 """so3jax: rigid-body attitude dynamics and control on SO(3), in JAX."""
 
 from . import scenes as scenes
+from ._ambient import RK4 as RK4, simulate_ambient as simulate_ambient
 from ._control import (
     AbstractController as AbstractController,
     AbstractReference as AbstractReference,
@@ -63,5 +64,14 @@ from ._so3 import (
     vee as vee,
 )
 from ._state import LieState as LieState, LieTangent as LieTangent
+from ._sweep import SweepResult as SweepResult, initial_states as initial_states, sweep as sweep
+from ._tune import (
+    CostWeights as CostWeights,
+    TuneResult as TuneResult,
+    expected_cost as expected_cost,
+    rollout_cost as rollout_cost,
+    tracking_cost as tracking_cost,
+    tune as tune,
+)
 
 __version__ = "0.1.0"

@@ -185,10 +185,13 @@ def simulate(
     return _simulate(scene, method, dt, t0, n_steps // save_every, save_every)
 
 
-@eqx.filter_jit
-def _simulate(scene, method, dt, t0, n_save: int, save_every: int) -> Trajectory:
-    y0 = scene.y0
-    nan_obs = jax.tree.map(lambda a: jnp.full_like(a, jnp.nan), scene.observe(t0, y0))
+def guarded_step(scene, method, dt, t0):
+    """The scan body of a fixed-step run: one step, frozen at the last good state.
+
+    The carry is ``(y, k, code, bad)``: state, step index, `Status` code and the
+    index of the failed step. A step that is not finite (or whose implicit solve
+    failed) sets the code once and leaves ``y`` at its last good value.
+    """
 
     def one_step(carry, _):
         y, k, code, bad = carry
@@ -202,6 +205,16 @@ def _simulate(scene, method, dt, t0, n_save: int, save_every: int) -> Trajectory
         keep = code == OK
         y = jax.tree.map(lambda new, old: jnp.where(keep, new, old), y1, y)
         return (y, k + 1, code, bad), None
+
+    return one_step
+
+
+@eqx.filter_jit
+def _simulate(scene, method, dt, t0, n_save: int, save_every: int) -> Trajectory:
+    y0 = scene.y0
+    nan_obs = jax.tree.map(lambda a: jnp.full_like(a, jnp.nan), scene.observe(t0, y0))
+
+    one_step = guarded_step(scene, method, dt, t0)
 
     def save_block(carry, _):
         carry, _ = jax.lax.scan(one_step, carry, None, length=save_every)

@@ -18,7 +18,19 @@ from __future__ import annotations
 
 import numpy as np
 
+# Figures of a `SweepResult` and a `TuneResult` live in their own module.
+from ._plot_sweep import (
+    settling_distribution as settling_distribution,
+    sweep_heatmaps as sweep_heatmaps,
+    tune_figure as tune_figure,
+    worst_attitudes as worst_attitudes,
+)
+
 __all__ = [
+    "sweep_heatmaps",
+    "settling_distribution",
+    "worst_attitudes",
+    "tune_figure",
     "attitude_error",
     "angular_velocity_error",
     "torque",

@@ -1,0 +1,107 @@
+"""Throughput of `so3jax.sweep`: runs per second of a gain grid x random attitudes.
+
+The seed scenario (geometric tracking, RKMK4, dt = 1e-2, 10 s) over a
+64 x 64 log grid of (k_R, k_Omega) x 16 uniformly random initial attitudes
+(65,536 runs), in float64 and float32. Compilation is timed separately (a
+warm-up sweep with the same chunk shape); the figure is runs per second and
+body-steps per second, with float32 as a ratio to float64 in the same run.
+
+Writes ``results/sweep[-quick].json`` and ``.png``.
+
+    python benchmarks/sweep.py            # full
+    python benchmarks/sweep.py --quick    # 8 x 8 grid x 4 attitudes, 2 s
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import matplotlib  # noqa: E402
+import numpy as np  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+import so3jax as so3  # noqa: E402
+from so3jax import _plot_sweep  # noqa: E402
+
+
+def run(dtype: str, n_grid: int, n_att: int, n_steps: int, chunk: int) -> dict:
+    scene = so3.scenes.seed(dtype=dtype)
+    k_R = np.geomspace(1.0, 100.0, n_grid)
+    k_O = np.geomspace(0.3, 30.0, n_grid)
+    kw = dict(key=jax.random.key(0), dt=1e-2, n_steps=n_steps, progress=False)
+    chunk = min(chunk, n_grid * n_grid * n_att)
+    # Warm-up: one chunk of the same shape (a list of gain pairs x the same
+    # attitudes), so the timed sweep reuses everything compiled.
+    pairs = np.full(chunk // n_att, 8.81)
+    t = time.perf_counter()
+    so3.sweep(scene, pairs, pairs, grid=False, n_attitudes=n_att, chunk_size=chunk, **kw)
+    compile_s = time.perf_counter() - t
+    t = time.perf_counter()
+    result = so3.sweep(scene, k_R, k_O, n_attitudes=n_att, chunk_size=chunk, **kw)
+    seconds = time.perf_counter() - t
+    n_runs = result.cost.size
+    return {
+        "dtype": dtype,
+        "grid": [n_grid, n_grid],
+        "n_attitudes": n_att,
+        "n_runs": n_runs,
+        "n_steps": n_steps,
+        "chunk_size": chunk,
+        "seconds": seconds,
+        "first_chunk_with_compile_s": compile_s,
+        "runs_per_second": n_runs / seconds,
+        "body_steps_per_second": n_runs * n_steps / seconds,
+        "diverged_runs": int(result.diverged.sum()),
+        "summary": result.summary(),
+        "_result": result,
+    }
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--out", default=str(Path(__file__).parent / "results"))
+    p.add_argument("--chunk-size", type=int, default=2048)
+    args = p.parse_args(argv)
+    n_grid, n_att, n_steps = (8, 4, 200) if args.quick else (64, 16, 1000)
+    rows = [run(dt, n_grid, n_att, n_steps, args.chunk_size) for dt in ("float64", "float32")]
+    for r in rows:
+        print(
+            f"{r['dtype']}: {r['n_runs']} runs x {n_steps} steps in {r['seconds']:.2f} s: "
+            f"{r['runs_per_second']:.0f} runs/s ({r['body_steps_per_second']:.3g} body-steps/s), "
+            f"compile+first chunk {r['first_chunk_with_compile_s']:.1f} s"
+        )
+    ratio = rows[1]["runs_per_second"] / rows[0]["runs_per_second"]
+    print(f"float32 / float64 throughput: {ratio:.2f}x")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    name = "sweep-quick" if args.quick else "sweep"
+    record = {
+        "benchmark": "sweep",
+        "quick": args.quick,
+        "device": str(jax.devices()[0]),
+        "n_devices": jax.device_count(),
+        "platform": platform.platform(),
+        "jax": jax.__version__,
+        "float32_over_float64": ratio,
+        "rows": [{k: v for k, v in r.items() if k != "_result"} for r in rows],
+    }
+    (out / f"{name}.json").write_text(json.dumps(record, indent=2) + "\n")
+    fig = _plot_sweep.sweep_heatmaps(rows[0]["_result"])
+    fig.savefig(out / f"{name}.png", dpi=110)
+    plt.close(fig)
+    print(f"wrote {out / name}.json and .png")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,252 @@
+"""Batched throughput: body-steps per second against batch size, and at equal accuracy.
+
+1. *Sweep*: the seed scenario from random initial attitudes, ``n_steps``
+   steps of 0.01 s, vmapped over the batch, for every Lie-group method and
+   diffrax (fixed-step RK4 and adaptive Tsit5, ambient), in float64 and
+   float32: body-steps per second (batch x steps / wall time; for adaptive
+   Tsit5, the accepted steps), compile time and XLA's memory estimate
+   (arguments + outputs + temporaries). Batch 1 to 65536 (``--quick``: 1 to 256).
+2. *Equal accuracy*: 4096 seed trajectories (``--quick``: 64) of 10 s, RKMK4 at
+   the step count and diffrax Tsit5 at the tolerance that each reach final
+   attitude error 1e-8 on the seed initial condition (calibrated in the same
+   run): trajectories per second and their ratio.
+
+The JSON records `jax.default_backend()` and the device kind: run it on a GPU
+for the GPU column.
+
+Writes ``results/throughput[-quick].json`` and ``.png``.
+
+    python benchmarks/throughput.py            # full (several minutes)
+    python benchmarks/throughput.py --quick    # seconds
+"""
+
+from __future__ import annotations
+
+import math
+
+import _common as C
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import so3jax as s
+
+LIE = {
+    "LieEuler": s.LieEuler,
+    "CG3": s.CG3,
+    "RKMK4": s.RKMK4,
+    "CF4": s.CF4,
+    "RKMK45": s.RKMK45,
+    "LGVI": s.LGVI,
+}
+AMBIENT = ["diffrax RK4", "diffrax Tsit5"]
+TSIT5_TOL = {"float64": 1e-8, "float32": 1e-5}
+
+
+def base_scene(dtype):
+    if hasattr(s.scenes, "seed"):
+        return s.scenes.seed(dtype=dtype)
+    return s.scenes.free_body(
+        jnp.array([1.0, 2.0, 3.0], dtype),
+        jnp.eye(3, dtype=dtype),
+        jnp.array([0.5, 1.0, -0.3], dtype),
+    )
+
+
+def with_R0(scene, R0):
+    return eqx.tree_at(lambda sc: sc.y0.R, scene, scene.y0.R.at[0].set(R0))
+
+
+def runner(label, scene, dt, n_steps, t1=None, tol=None):
+    """``f(R0s) -> (R_final, Omega_final, steps)``, vmapped over initial attitudes."""
+
+    def one(R0):
+        sc = with_R0(scene, R0)
+        if label in LIE:
+            tr = s.simulate(sc, LIE[label](), dt, n_steps, save_every=n_steps)
+            steps = jnp.asarray(n_steps)
+        elif label == "diffrax RK4":
+            tr = s.simulate_ambient(sc, "rk4", dt=dt, n_steps=n_steps, save_every=n_steps)
+            steps = tr.extras["num_accepted_steps"]
+        else:
+            T = n_steps * dt if t1 is None else t1
+            tr = s.simulate_ambient(sc, "tsit5", T, rtol=tol, atol=tol, n_save=2)
+            steps = tr.extras["num_accepted_steps"]
+        return tr.R[-1], tr.Omega[-1], steps
+
+    return jax.vmap(one)
+
+
+def sweep(args):
+    n_steps = 20 if args.quick else 100
+    dt = 0.01
+    batches = [1, 64] if args.quick else [1, 16, 256, 4096, 65536]
+    labels = ["RKMK4", "diffrax RK4"] if args.quick else list(LIE) + AMBIENT
+    batches = args.batches or batches
+    labels = args.methods or labels
+    dtypes = ["float64", "float32"]
+    rows = []
+    jobs = [(d, m, b) for d in dtypes for m in labels for b in batches]
+    for dname, label, B in C.progress(jobs, "throughput"):
+        dtype = jnp.dtype(dname)
+        scene = base_scene(dtype)
+        R0s = s.random_rotation(jax.random.key(0), (B,), dtype=dtype)
+        fn = runner(label, scene, dt, n_steps, tol=TSIT5_TOL[dname])
+        reps = args.repeats if B * n_steps <= 1e6 else max(1, min(args.repeats, 2))
+        r = C.compile_and_time(fn, R0s, repeats=reps)
+        steps = float(np.sum(np.asarray(r["out"][2])))
+        finite = bool(np.all(np.isfinite(np.asarray(r["out"][1]))))
+        rows.append(
+            {
+                "dtype": dname,
+                "method": label,
+                "batch": B,
+                "run_s": r["run_s"],
+                "compile_s": r["compile_s"],
+                "body_steps_per_s": steps / r["run_s"],
+                "memory_mb": None if r["memory_bytes"] is None else r["memory_bytes"] / 2**20,
+                "finite": finite,
+            }
+        )
+    return {"n_steps": n_steps, "dt": dt, "batches": batches, "methods": labels, "rows": rows}
+
+
+def calibrate(scene, quick):
+    """RKMK4 step count and Tsit5 tolerance reaching final attitude error 1e-8 (10 s).
+
+    ``--quick`` skips the search (fixed settings; their errors are still measured).
+    """
+    T = 10.0
+    n_ref = 10000 if quick else 40000
+    ref = s.simulate(scene, s.RKMK45(), T / n_ref, n_ref, save_every=n_ref).R[-1]
+    if quick:
+        return _check_settings(scene, ref, T, 1000, 1e-9)
+    ns = [500, 1000, 2000] if quick else [500, 700, 1000, 1400, 2000, 2800]
+    errs = []
+    for n in ns:
+        R = s.simulate(scene, s.RKMK4(), T / n, n, save_every=n).R[-1]
+        errs.append(float(s.geodesic_distance(R, ref)))
+    n_star = C.interp_loglog(errs, ns, 1e-8)
+    n_star = ns[-1] if not math.isfinite(n_star) else int(math.ceil(n_star / 50) * 50)
+    tols = [1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11]
+    terrs = []
+    for tol in tols:
+        tr = s.simulate_ambient(scene, "tsit5", T, rtol=tol, atol=tol, n_save=2)
+        terrs.append(float(s.geodesic_distance(s.project(tr.R[-1]), ref)))
+    tol_star = C.interp_loglog(terrs, tols, 1e-8)
+    tol_star = tols[-1] if not math.isfinite(tol_star) else tol_star
+    return _check_settings(scene, ref, T, n_star, tol_star)
+
+
+def _check_settings(scene, ref, T, n_star, tol_star):
+    """Final attitude errors of the chosen settings on the seed initial condition."""
+    R = s.simulate(scene, s.RKMK4(), T / n_star, n_star, save_every=n_star).R[-1]
+    tr = s.simulate_ambient(scene, "tsit5", T, rtol=tol_star, atol=tol_star, n_save=2)
+    return {
+        "T": T,
+        "rkmk4_n_steps": n_star,
+        "rkmk4_err": float(s.geodesic_distance(R, ref)),
+        "tsit5_tol": tol_star,
+        "tsit5_err": float(s.geodesic_distance(s.project(tr.R[-1]), ref)),
+    }
+
+
+def equal_accuracy(args):
+    scene = base_scene(jnp.float64)
+    cal = calibrate(scene, args.quick)
+    B = 64 if args.quick else 4096
+    T, n = cal["T"], cal["rkmk4_n_steps"]
+    R0s = s.random_rotation(jax.random.key(1), (B,), dtype=jnp.float64)
+    out = {"batch": B, **cal}
+    for label, fn in [
+        ("RKMK4", runner("RKMK4", scene, T / n, n)),
+        ("diffrax Tsit5", runner("diffrax Tsit5", scene, None, 0, t1=T, tol=cal["tsit5_tol"])),
+    ]:
+        r = C.compile_and_time(fn, R0s, repeats=max(1, min(args.repeats, 3)))
+        steps = float(np.sum(np.asarray(r["out"][2])))
+        out[label] = {
+            "run_s": r["run_s"],
+            "compile_s": r["compile_s"],
+            "trajectories_per_s": B / r["run_s"],
+            "body_steps_per_s": steps / r["run_s"],
+            "mean_steps": steps / B,
+            "memory_mb": None if r["memory_bytes"] is None else r["memory_bytes"] / 2**20,
+        }
+    out["speedup_rkmk4_over_tsit5"] = out["diffrax Tsit5"]["run_s"] / out["RKMK4"]["run_s"]
+    return out
+
+
+def plot(res, path):
+    sw = res["sweep"]
+    fig, axes = C.plt.subplots(1, 3, figsize=(17, 4.8))
+    for ax, dname in zip(axes[:2], ["float64", "float32"], strict=True):
+        for label in dict.fromkeys(r["method"] for r in sw["rows"]):
+            rr = [r for r in sw["rows"] if r["method"] == label and r["dtype"] == dname]
+            ax.loglog(
+                [r["batch"] for r in rr],
+                [r["body_steps_per_s"] for r in rr],
+                "--s" if "diffrax" in label else "-o",
+                label=label,
+                ms=4,
+            )
+        ax.set_xlabel("batch size")
+        ax.set_ylabel("body-steps / s")
+        ax.set_title(
+            f"seed scenario, {dname}, {res['env']['backend']} ({res['env']['device_kind']})"
+        )
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    eq = res["equal_accuracy"]
+    ax = axes[2]
+    labels = ["RKMK4", "diffrax Tsit5"]
+    ax.bar(labels, [eq[k]["trajectories_per_s"] for k in labels], color=["C0", "C1"])
+    ax.set_yscale("log")
+    ax.set_ylabel("trajectories / s")
+    ax.set_title(
+        f"{eq['batch']} x seed {eq['T']:g} s at attitude error 1e-8: "
+        f"{eq['speedup_rkmk4_over_tsit5']:.1f}x"
+    )
+    fig.tight_layout()
+    C.save_figure(fig, path)
+
+
+def main():
+    def extra(p):
+        p.add_argument("--methods", nargs="+", help=f"subset of {list(LIE) + AMBIENT}")
+        p.add_argument("--batches", nargs="+", type=int, help="batch sizes of the sweep")
+
+    args = C.parse_args(__doc__.splitlines()[0], extra)
+    json_path, png_path = C.output_paths(args, "throughput")
+    res = {"sweep": sweep(args), "equal_accuracy": equal_accuracy(args)}
+    res["env"] = C.environment()
+    sw = res["sweep"]
+    for dname in ["float64", "float32"]:
+        rows = []
+        for label in dict.fromkeys(r["method"] for r in sw["rows"]):
+            rr = {r["batch"]: r for r in sw["rows"] if r["method"] == label and r["dtype"] == dname}
+            row = {"method": label}
+            row.update({f"B={b}": rr[b]["body_steps_per_s"] for b in sw["batches"] if b in rr})
+            row["compile_s"] = rr[sw["batches"][0]]["compile_s"]
+            row["mem_MB@max"] = rr[sw["batches"][-1]]["memory_mb"]
+            rows.append(row)
+        cols = ["method"] + [f"B={b}" for b in sw["batches"]] + ["compile_s", "mem_MB@max"]
+        C.print_table(rows, cols, f"body-steps/s, {dname}, {sw['n_steps']} steps of {sw['dt']} s")
+    eq = res["equal_accuracy"]
+    title = (
+        f"equal accuracy (1e-8): {eq['batch']} seed trajectories; "
+        f"RKMK4 n = {eq['rkmk4_n_steps']} (err {eq['rkmk4_err']:.2g}), "
+        f"Tsit5 tol = {eq['tsit5_tol']:.2g} (err {eq['tsit5_err']:.2g}); "
+        f"RKMK4 speed-up {eq['speedup_rkmk4_over_tsit5']:.1f}x"
+    )
+    C.print_table(
+        [{"method": k, **eq[k]} for k in ["RKMK4", "diffrax Tsit5"]],
+        ["method", "run_s", "trajectories_per_s", "body_steps_per_s", "mean_steps", "compile_s"],
+        title,
+    )
+    C.write_json(json_path, res)
+    plot(res, png_path)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,288 @@
+"""Command line for sweeps and tuning: ``python -m so3jax sweep|tune [options]``.
+
+Both commands run the seed scenario (`scenes.seed`) with defaults that finish
+in about a minute on a laptop CPU, write their results and figures to an
+output folder and print where. float64 runs turn on JAX's x64 mode inside the
+command only (`jax.enable_x64` as a context), never globally.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line on stderr (exit status 2)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _positive(kind):
+    def parse(text):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not (math.isfinite(v) and v > 0):
+            raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+        return v
+
+    return parse
+
+
+def _nonneg_float(text):
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return v
+
+
+def _common(p: argparse.ArgumentParser, out: str, duration: float):
+    p.add_argument("--out", default=out, help="output folder (default: %(default)s)")
+    p.add_argument("--duration", type=_positive(float), default=duration, help="horizon in s")
+    p.add_argument("--dt", type=_positive(float), default=1e-2, help="step size in s")
+    p.add_argument("--method", default="RKMK4", help="Lie-group method (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="PRNG seed of the initial attitudes")
+    p.add_argument("--dtype", choices=("float64", "float32"), default="float64")
+    p.add_argument("--w-psi", type=_nonneg_float, default=1.0, help="cost weight of Psi")
+    p.add_argument("--w-omega", type=_nonneg_float, default=0.1, help="weight of |e_Omega|^2")
+    p.add_argument("--w-effort", type=_nonneg_float, default=0.01, help="weight of |M|^2")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _method(name: str, parser):
+    import so3jax
+
+    cls = getattr(so3jax, name, None)
+    if not (isinstance(cls, type) and issubclass(cls, so3jax.AbstractLieSolver)):
+        parser.error(f"--method must name a so3jax Lie-group method (e.g. RKMK4), got {name!r}")
+    try:
+        return cls()
+    except TypeError:
+        parser.error(f"--method {name} needs arguments; pick e.g. RKMK4, CG3, LieEuler")
+
+
+def _n_steps(args, parser) -> int:
+    n = round(args.duration / args.dt)
+    if n < 1 or abs(n * args.dt - args.duration) > 1e-9 * max(1.0, args.duration):
+        parser.error(f"--duration ({args.duration}) must be a multiple of --dt ({args.dt})")
+    return n
+
+
+def sweep_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="python -m so3jax sweep",
+        description=(
+            "Monte Carlo sweep of the geometric controller on the seed scenario: a log grid of "
+            "(k_R, k_Omega) crossed with random initial attitudes. Writes results.npz, "
+            "summary.json and PNG figures to --out; rerun with the same options to resume."
+        ),
+    )
+    p.add_argument("--n-kR", type=int, default=16, help="grid points in k_R")
+    p.add_argument("--n-kOmega", type=int, default=16, help="grid points in k_Omega")
+    p.add_argument("--kR-range", type=_positive(float), nargs=2, default=(1.0, 100.0))
+    p.add_argument("--kOmega-range", type=_positive(float), nargs=2, default=(0.3, 30.0))
+    p.add_argument("--n-attitudes", type=int, default=32, help="random attitudes per gain pair")
+    p.add_argument("--omega0-std", type=_nonneg_float, default=0.0, help="random rates, rad/s")
+    p.add_argument("--threshold", type=_positive(float), default=0.01, help="settling Psi")
+    p.add_argument("--save-every", type=int, default=1)
+    p.add_argument("--chunk-size", type=int, default=2048, help="runs per chunk")
+    _common(p, "so3jax-sweep", 10.0)
+    return p
+
+
+def tune_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="python -m so3jax tune",
+        description=(
+            "Gradient-based tuning of (k_R, k_Omega) on the seed scenario (Adam in log-gains) "
+            "over a batch of initial attitudes (the seed's and random ones). Writes tune.json "
+            "and tune.png to --out."
+        ),
+    )
+    p.add_argument("--kR0", type=_positive(float), default=1.0, help="initial k_R")
+    p.add_argument("--kOmega0", type=_positive(float), default=1.0, help="initial k_Omega")
+    p.add_argument("--n-attitudes", type=int, default=4, help="attitudes averaged over")
+    p.add_argument("--iters", type=int, default=100, help="optimiser steps")
+    p.add_argument("--lr", type=_positive(float), default=0.1, help="Adam step in log-gain")
+    p.add_argument("--per-axis", action="store_true", help="tune one gain per body axis")
+    p.add_argument("--gradient", choices=("reverse", "forward"), default="reverse")
+    _common(p, "so3jax-tune", 3.0)
+    return p
+
+
+def _check_counts(parser, **counts):
+    for name, v in counts.items():
+        if v < 1:
+            parser.error(f"--{name} must be >= 1, got {v}")
+
+
+def sweep_main(argv=None) -> int:
+    """``python -m so3jax sweep``: run a gain sweep and write its results and figures."""
+    parser = sweep_parser()
+    args = parser.parse_args(argv)
+    _check_counts(
+        parser,
+        **{
+            "n-kR": args.n_kR,
+            "n-kOmega": args.n_kOmega,
+            "n-attitudes": args.n_attitudes,
+            "save-every": args.save_every,
+            "chunk-size": args.chunk_size,
+        },
+    )
+    if args.threshold > 2:
+        parser.error(f"--threshold must be in (0, 2], got {args.threshold}")
+    n_steps = _n_steps(args, parser)
+    if n_steps % args.save_every:
+        parser.error(f"--save-every ({args.save_every}) must divide the {n_steps} steps")
+    method = _method(args.method, parser)
+
+    import jax
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from . import _plot_sweep as plots, scenes
+    from ._sweep import sweep
+    from ._tune import CostWeights
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with jax.enable_x64(args.dtype == "float64"):
+        scene = scenes.seed(dtype=args.dtype)
+        k_R = np.geomspace(*args.kR_range, args.n_kR)
+        k_O = np.geomspace(*args.kOmega_range, args.n_kOmega)
+        t = time.perf_counter()
+        result = sweep(
+            scene,
+            k_R,
+            k_O,
+            key=jax.random.key(args.seed),
+            n_attitudes=args.n_attitudes,
+            method=method,
+            dt=args.dt,
+            n_steps=n_steps,
+            save_every=args.save_every,
+            omega0_std=args.omega0_std,
+            threshold=args.threshold,
+            weights=CostWeights(args.w_psi, args.w_omega, args.w_effort),
+            chunk_size=args.chunk_size,
+            results_dir=out / "chunks",
+            progress=not args.quiet,
+        )
+        seconds = time.perf_counter() - t
+    result.save(out / "results.npz")
+    summary = result.summary()
+    summary.update(
+        seconds=seconds,
+        runs_per_second=summary["n_runs"] / seconds,
+        dtype=args.dtype,
+        method=args.method,
+        devices=[str(d) for d in jax.devices()],
+    )
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    figures = {
+        "heatmaps.png": plots.sweep_heatmaps(result),
+        "settling.png": plots.settling_distribution(result),
+        "worst_attitudes.png": plots.worst_attitudes(result),
+    }
+    for name, fig in figures.items():
+        fig.savefig(out / name, dpi=110)
+        plt.close(fig)
+    best = summary["best"]
+    print(
+        f"{summary['n_runs']} runs in {seconds:.1f} s ({summary['diverged_runs']} diverged); "
+        f"best mean cost {best['mean_cost']:.4g} at k_R = {best['k_R']:.3g}, "
+        f"k_Omega = {best['k_Omega']:.3g} (median settling {best['median_settling_time']:.3g} s)"
+    )
+    print(f"results and figures written to {out.resolve()}")
+    return 0
+
+
+def tune_main(argv=None) -> int:
+    """``python -m so3jax tune``: tune the seed's gains by gradient and write the history."""
+    parser = tune_parser()
+    args = parser.parse_args(argv)
+    _check_counts(parser, **{"n-attitudes": args.n_attitudes, "iters": args.iters})
+    n_steps = _n_steps(args, parser)
+    method = _method(args.method, parser)
+
+    import jax
+    import jax.numpy as jnp
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from . import _plot_sweep as plots, scenes
+    from ._simulate import simulate
+    from ._sweep import initial_states
+    from ._tune import CostWeights, tune, with_gains
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with jax.enable_x64(args.dtype == "float64"):
+        scene = scenes.seed(dtype=args.dtype)
+        dtype = scene.y0.R.dtype
+        # The seed's own initial attitude first, then random ones.
+        R_rand, _ = initial_states(jax.random.key(args.seed), args.n_attitudes - 1, dtype=dtype)
+        R0 = jnp.concatenate([scene.y0.R[0][None], R_rand])
+        t = time.perf_counter()
+        result = tune(
+            scene,
+            (args.kR0, args.kOmega0),
+            method=method,
+            dt=args.dt,
+            n_steps=n_steps,
+            R0=R0,
+            weights=CostWeights(args.w_psi, args.w_omega, args.w_effort),
+            n_iter=args.iters,
+            learning_rate=args.lr,
+            per_axis=args.per_axis,
+            gradient=args.gradient,
+            progress=not args.quiet,
+        )
+        seconds = time.perf_counter() - t
+        before = simulate(with_gains(scene, args.kR0, args.kOmega0), method, args.dt, n_steps)
+        after = simulate(
+            with_gains(scene, result.gains.k_R, result.gains.k_Omega), method, args.dt, n_steps
+        )
+    report = {
+        "k_R": jnp.asarray(result.gains.k_R).tolist(),
+        "k_Omega": jnp.asarray(result.gains.k_Omega).tolist(),
+        "cost": result.cost,
+        "initial_cost": result.initial_cost,
+        "best_iteration": result.best_iteration,
+        "cost_history": result.cost_history.tolist(),
+        "seconds": seconds,
+        "dtype": args.dtype,
+        "gradient": args.gradient,
+        "n_attitudes": args.n_attitudes,
+        "horizon": n_steps * args.dt,
+    }
+    (out / "tune.json").write_text(json.dumps(report, indent=2) + "\n")
+    fig = plots.tune_figure(result, before, after)
+    fig.savefig(out / "tune.png", dpi=110)
+    plt.close(fig)
+    print(
+        f"cost {result.initial_cost:.4g} -> {result.cost:.4g} in {args.iters} steps "
+        f"({seconds:.1f} s): k_R = {report['k_R']}, k_Omega = {report['k_Omega']}"
+    )
+    print(f"results and figures written to {out.resolve()}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(sweep_main())

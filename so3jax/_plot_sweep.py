@@ -1,0 +1,227 @@
+"""Figures of a `SweepResult` and a `TuneResult` (matplotlib).
+
+Every function returns a `matplotlib.figure.Figure`. Scripts that only write
+files should select the Agg backend first (``matplotlib.use("Agg")``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["sweep_heatmaps", "settling_distribution", "worst_attitudes", "tune_figure"]
+
+
+def _grid_axes(result):
+    if result.grid_shape is None:
+        raise ValueError("heat maps need a grid sweep (grid=True)")
+    return result.k_R[:: result.grid_shape[1]], result.k_Omega[: result.grid_shape[1]]
+
+
+def sweep_heatmaps(result):
+    """Heat maps over ``(k_R, k_Omega)``: median settling time and failure fraction.
+
+    Cells whose runs all diverged are hatched grey; a cell whose median is
+    ``inf`` (fewer than half the runs settled) is drawn at the top of the scale.
+
+    **Arguments:**
+
+    - `result`: a `SweepResult` of a grid sweep.
+
+    **Returns:** a `Figure` with two panels.
+    """
+    import matplotlib.pyplot as plt
+
+    kR, kO = _grid_axes(result)
+    med = result.as_grid(result.median_settling_time)
+    fail = result.as_grid(result.failure_fraction)
+    horizon = result.dt * result.n_steps
+    med_shown = np.where(np.isinf(med), horizon, med)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
+    panels = (
+        (med_shown, "median settling time (s)", "viridis", 0.0, horizon),
+        (fail, "failure fraction (diverged or not settled)", "magma", 0.0, 1.0),
+    )
+    for ax, (val, title, cmap, vmin, vmax) in zip(axes, panels, strict=True):
+        cm = plt.get_cmap(cmap).with_extremes(bad="0.75")
+        m = ax.pcolormesh(
+            _edges(kO), _edges(kR), np.ma.masked_invalid(val), cmap=cm, vmin=vmin, vmax=vmax
+        )
+        fig.colorbar(m, ax=ax)
+        ax.set_xscale("log" if _is_geometric(kO) else "linear")
+        ax.set_yscale("log" if _is_geometric(kR) else "linear")
+        ax.set_xlabel("k_Omega")
+        ax.set_ylabel("k_R")
+        ax.set_title(title, fontsize=10)
+    b = result.best()
+    for ax in axes:
+        ax.plot(result.k_Omega[b], result.k_R[b], "w*", ms=12, mec="k", label="lowest mean cost")
+    axes[0].legend(loc="lower right", fontsize=8)
+    n = result.R0.shape[0]
+    fig.suptitle(
+        f"{n} random attitudes per cell, horizon {horizon:g} s, Psi < {result.threshold:g}",
+        fontsize=10,
+    )
+    return fig
+
+
+def _is_geometric(x) -> bool:
+    x = np.asarray(x, float)
+    if x.size < 3 or np.any(x <= 0):
+        return False
+    r = x[1:] / x[:-1]
+    return bool(np.allclose(r, r[0], rtol=1e-6) and not np.isclose(r[0], 1.0))
+
+
+def _edges(x):
+    """Cell edges around sorted centres (geometric means on a log grid)."""
+    x = np.asarray(x, float)
+    if x.size == 1:
+        return np.array([x[0] * 0.9, x[0] * 1.1]) if x[0] > 0 else np.array([-0.5, 0.5])
+    if _is_geometric(x):
+        lx = np.log(x)
+        mid = 0.5 * (lx[1:] + lx[:-1])
+        return np.exp(np.concatenate([[2 * lx[0] - mid[0]], mid, [2 * lx[-1] - mid[-1]]]))
+    mid = 0.5 * (x[1:] + x[:-1])
+    return np.concatenate([[2 * x[0] - mid[0]], mid, [2 * x[-1] - mid[-1]]])
+
+
+def settling_distribution(result, gains=None, bins: int = 30):
+    """Histograms of the settling time for a few gain pairs (diverged runs left out).
+
+    **Arguments:**
+
+    - `result`: a `SweepResult`.
+    - `gains`: indices of the gain pairs to show (default: the lowest mean
+      cost and up to three others across the sweep).
+    - `bins`: histogram bins.
+
+    **Returns:** a `Figure`; runs that never settled are counted in the legend.
+    """
+    import matplotlib.pyplot as plt
+
+    G = result.k_R.shape[0]
+    if gains is None:
+        b = result.best()
+        others = np.linspace(0, G - 1, 4).astype(int)
+        gains = [b] + [int(g) for g in others if g != b][:3]
+    horizon = result.dt * result.n_steps
+    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+    edges = np.linspace(0.0, horizon, bins + 1)
+    for g in gains:
+        t = result.settling_time[g][~result.diverged[g]]
+        unsettled = int(np.sum(~np.isfinite(t)))
+        label = (
+            f"k_R={_fmt(result.k_R[g])}, k_Omega={_fmt(result.k_Omega[g])} "
+            f"({unsettled} unsettled, {int(result.diverged[g].sum())} diverged)"
+        )
+        ax.hist(t[np.isfinite(t)], bins=edges, histtype="step", lw=1.6, label=label)
+    ax.set_xlabel("settling time (s)")
+    ax.set_ylabel("runs")
+    ax.set_title(f"settling time (Psi < {result.threshold:g}) over random initial attitudes")
+    ax.legend(fontsize=7)
+    return fig
+
+
+def _fmt(k) -> str:
+    k = np.asarray(k)
+    return f"{float(k):.3g}" if k.ndim == 0 else "(" + ", ".join(f"{v:.3g}" for v in k) + ")"
+
+
+def worst_attitudes(result, g: int | None = None, n_worst: int = 5):
+    """Where the slow initial attitudes are: error axis on the sphere, and time against angle.
+
+    Left: the rotation axis of ``R0`` (the initial error when ``Rd0 = I``, as
+    in the seed) in a longitude–latitude map, colored by settling time.
+    Right: settling time against the initial error angle, with the `n_worst`
+    slowest runs circled; near 180 degrees ``e_R`` is small and the geometric
+    controller is slow (almost-global stability).
+
+    **Arguments:**
+
+    - `result`: a `SweepResult`.
+    - `g`: the gain pair (default: the lowest mean cost).
+    - `n_worst`: how many slowest runs to mark.
+
+    **Returns:** a `Figure` with two panels.
+    """
+    import matplotlib.pyplot as plt
+
+    from ._so3 import to_axis_angle
+
+    g = result.best() if g is None else int(g)
+    axis, angle = (np.asarray(a) for a in to_axis_angle(result.R0))
+    t = np.where(result.diverged[g], np.nan, result.settling_time[g])
+    horizon = result.dt * result.n_steps
+    shown = np.where(np.isinf(t), horizon, t)
+    lon = np.degrees(np.arctan2(axis[:, 1], axis[:, 0]))
+    lat = np.degrees(np.arcsin(np.clip(axis[:, 2], -1, 1)))
+    worst = result.worst_attitudes(g, n_worst)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
+    sc = axes[0].scatter(lon, lat, c=shown, cmap="viridis", vmin=0, vmax=horizon, s=18)
+    axes[0].scatter(lon[worst], lat[worst], s=90, facecolors="none", edgecolors="r")
+    fig.colorbar(sc, ax=axes[0], label="settling time (s)")
+    axes[0].set_xlabel("axis longitude (deg)")
+    axes[0].set_ylabel("axis latitude (deg)")
+    axes[0].set_xlim(-180, 180)
+    axes[0].set_ylim(-90, 90)
+    axes[0].set_title("axis of the initial attitude R0", fontsize=10)
+    axes[1].scatter(np.degrees(angle), shown, s=14, c="tab:blue")
+    axes[1].scatter(
+        np.degrees(angle[worst]),
+        shown[worst],
+        s=90,
+        facecolors="none",
+        edgecolors="r",
+        label=f"{n_worst} slowest",
+    )
+    axes[1].axhline(horizon, color="0.5", ls=":", lw=1, label="not settled")
+    axes[1].set_xlabel("initial rotation angle of R0 (deg)")
+    axes[1].set_ylabel("settling time (s)")
+    axes[1].legend(fontsize=8)
+    fig.suptitle(f"k_R = {_fmt(result.k_R[g])}, k_Omega = {_fmt(result.k_Omega[g])}", fontsize=10)
+    return fig
+
+
+def tune_figure(result, before=None, after=None):
+    """Cost against iteration (and the gains), plus ``Psi(t)`` before and after tuning.
+
+    **Arguments:**
+
+    - `result`: a `TuneResult`.
+    - `before`, `after`: optional `Trajectory` of the initial and tuned gains
+      (tracking scenes); when given, a third panel shows ``Psi(t)`` of both.
+
+    **Returns:** a `Figure`.
+    """
+    import matplotlib.pyplot as plt
+
+    n = 3 if before is not None or after is not None else 2
+    fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 3.8), constrained_layout=True)
+    it = np.arange(result.cost_history.shape[0])
+    axes[0].plot(it, result.cost_history, "k-")
+    axes[0].plot(result.best_iteration, result.cost, "r*", ms=10, label="best")
+    axes[0].set_xlabel("iteration")
+    axes[0].set_ylabel("cost")
+    axes[0].set_title("tracking cost", fontsize=10)
+    axes[0].legend(fontsize=8)
+    kR, kO = result.k_R_history, result.k_Omega_history
+    axes[1].plot(it, kR.reshape(len(it), -1), "-", color="tab:blue")
+    axes[1].plot(it, kO.reshape(len(it), -1), "-", color="tab:orange")
+    axes[1].plot([], [], "-", color="tab:blue", label="k_R")
+    axes[1].plot([], [], "-", color="tab:orange", label="k_Omega")
+    axes[1].set_yscale("log")
+    axes[1].set_xlabel("iteration")
+    axes[1].set_title("gains", fontsize=10)
+    axes[1].legend(fontsize=8)
+    if n == 3:
+        for traj, label in ((before, "before"), (after, "after")):
+            if traj is None:
+                continue
+            R, Rd = np.asarray(traj.R), np.asarray(traj.Rd)
+            psi = 0.5 * (3.0 - np.sum(Rd * R, axis=(-1, -2)))
+            axes[2].semilogy(np.asarray(traj.t), np.maximum(psi, 1e-16), label=label)
+        axes[2].set_xlabel("t (s)")
+        axes[2].set_ylabel("Psi")
+        axes[2].set_title("attitude error", fontsize=10)
+        axes[2].legend(fontsize=8)
+    return fig

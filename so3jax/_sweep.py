@@ -1,0 +1,538 @@
+"""Batched Monte Carlo sweeps: gains crossed with random initial attitudes.
+
+A sweep is `jax.vmap` of `simulate` over a flat list of runs (gain pair ``g``,
+attitude ``i``), cut into chunks of bounded memory. Each chunk is sharded over
+the devices along its batch axis (`jax.sharding.NamedSharding` over a 1-D
+`jax.sharding.Mesh`), so the same call runs on one CPU, several GPUs or several
+hosts. Per run only a few numbers come back (final ``Psi``, settling time, peak
+torque, integrated cost, status); with a `results_dir` every finished chunk is
+written to its own ``.npz`` file at once, so an interrupted sweep resumes where
+it stopped.
+
+Attitude ``i`` is drawn from ``jax.random.fold_in(key, i)``: it does not depend
+on the number of attitudes, and every gain pair sees the same attitudes (common
+random numbers, so differences between gains are not sampling noise).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import json
+import math
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from ._integrators import RKMK4, AbstractLieSolver
+from ._simulate import OK, _check_int, simulate
+from ._so3 import random_rotation
+from ._tune import (
+    CostWeights,
+    _check_tracking_scene,
+    _check_weights,
+    tracking_cost,
+    with_gains,
+    with_initial_state,
+)
+from ._types import Array
+
+#: Per-run fields of a `SweepResult`, as stored in the chunk files.
+RUN_FIELDS = ("final_psi", "settling_time", "peak_torque", "cost", "status_code", "fail_step")
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepResult:
+    """Per-run results and per-gain statistics of a `sweep`.
+
+    Runs are indexed ``[g, i]``: gain pair ``g``, initial attitude ``i``.
+    Statistics ignore diverged runs (status code != 0); a gain pair whose
+    runs all diverged has NaN statistics and a failure fraction of 1.
+
+    **Fields:**
+
+    - `k_R`, `k_Omega`: the gain pairs, shape `(G,)` (or `(G, 3)` per axis).
+    - `grid_shape`: ``(len(k_R), len(k_Omega))`` for a grid sweep (pair
+      ``g = a * len(k_Omega) + b``), ``None`` for a list of pairs.
+    - `R0`: initial attitudes, shape `(N, 3, 3)`; `Omega0`: rates, `(N, 3)`.
+    - `final_psi`: ``Psi(R, Rd)`` at the end, shape `(G, N)`.
+    - `settling_time`: first saved time after which ``Psi < threshold`` for
+      good, shape `(G, N)`; ``inf`` if it never settles, NaN if it diverged.
+    - `peak_torque`: ``max |M|`` over the saved points, shape `(G, N)`.
+    - `cost`: `tracking_cost` of the run, shape `(G, N)`.
+    - `status_code`, `fail_step`: the run's `Status`, shape `(G, N)`.
+    - `threshold`, `dt`, `n_steps`, `save_every`: the settings.
+    """
+
+    k_R: np.ndarray
+    k_Omega: np.ndarray
+    grid_shape: tuple[int, int] | None
+    R0: np.ndarray
+    Omega0: np.ndarray
+    final_psi: np.ndarray
+    settling_time: np.ndarray
+    peak_torque: np.ndarray
+    cost: np.ndarray
+    status_code: np.ndarray
+    fail_step: np.ndarray
+    threshold: float
+    dt: float
+    n_steps: int
+    save_every: int
+
+    @property
+    def diverged(self) -> np.ndarray:
+        """Runs that stopped being finite (or whose solver failed), shape `(G, N)`."""
+        return self.status_code != OK
+
+    @property
+    def settled(self) -> np.ndarray:
+        """Runs that stayed finite and settled within the horizon, shape `(G, N)`."""
+        return ~self.diverged & np.isfinite(self.settling_time)
+
+    def _masked(self, values: np.ndarray) -> np.ndarray:
+        return np.where(self.diverged, np.nan, values)
+
+    @property
+    def median_settling_time(self) -> np.ndarray:
+        """Median settling time per gain pair over non-diverged runs, shape `(G,)`.
+
+        Runs that never settle count as ``inf`` (a censored sample: the median
+        is exact while fewer than half are censored, ``inf`` otherwise).
+        """
+        return _nan_reduce(np.nanmedian, self._masked(self.settling_time))
+
+    def settling_quantile(self, q: float) -> np.ndarray:
+        """Quantile ``q`` of the settling time per gain pair (non-diverged runs), `(G,)`."""
+        return _nan_reduce(
+            lambda a, axis: np.nanquantile(a, q, axis=axis), self._masked(self.settling_time)
+        )
+
+    @property
+    def failure_fraction(self) -> np.ndarray:
+        """Fraction of runs per gain pair that diverged or did not settle, shape `(G,)`."""
+        return 1.0 - self.settled.mean(axis=1)
+
+    @property
+    def diverged_fraction(self) -> np.ndarray:
+        """Fraction of runs per gain pair that diverged, shape `(G,)`."""
+        return self.diverged.mean(axis=1)
+
+    @property
+    def mean_cost(self) -> np.ndarray:
+        """Mean tracking cost per gain pair over non-diverged runs, shape `(G,)`."""
+        return _nan_reduce(np.nanmean, self._masked(self.cost))
+
+    @property
+    def mean_final_psi(self) -> np.ndarray:
+        """Mean final ``Psi`` per gain pair over non-diverged runs, shape `(G,)`."""
+        return _nan_reduce(np.nanmean, self._masked(self.final_psi))
+
+    @property
+    def max_peak_torque(self) -> np.ndarray:
+        """Largest peak torque per gain pair over non-diverged runs, shape `(G,)`."""
+        return _nan_reduce(np.nanmax, self._masked(self.peak_torque))
+
+    def as_grid(self, values: np.ndarray) -> np.ndarray:
+        """Per-gain values `(G, ...)` reshaped to ``(len(k_R), len(k_Omega), ...)``."""
+        if self.grid_shape is None:
+            raise ValueError("as_grid needs a grid sweep (grid=True)")
+        values = np.asarray(values)
+        return values.reshape(self.grid_shape + values.shape[1:])
+
+    def best(self, statistic: str = "mean_cost") -> int:
+        """Index of the gain pair with the smallest `statistic` (NaN never wins)."""
+        values = np.asarray(getattr(self, statistic), dtype=float)
+        if values.shape != (self.k_R.shape[0],):
+            raise ValueError(f"statistic must be a per-gain statistic, got {statistic!r}")
+        values = np.where(np.isnan(values), np.inf, values)
+        return int(np.argmin(values))
+
+    def worst_attitudes(self, g: int, n: int = 5) -> np.ndarray:
+        """Indices of the ``n`` slowest initial attitudes for gain pair ``g`` (diverged first)."""
+        t = np.where(self.diverged[g], np.inf, self.settling_time[g])
+        return np.argsort(-np.nan_to_num(t, posinf=np.finfo(float).max), kind="stable")[:n]
+
+    def summary(self) -> dict:
+        """A JSON-ready summary: per-gain statistics and the best gain pair."""
+        b = self.best()
+        return {
+            "n_gains": int(self.k_R.shape[0]),
+            "n_attitudes": int(self.R0.shape[0]),
+            "n_runs": int(self.cost.size),
+            "threshold": self.threshold,
+            "horizon": self.dt * self.n_steps,
+            "diverged_runs": int(self.diverged.sum()),
+            "failure_fraction_overall": float(1.0 - self.settled.mean()),
+            "best": {
+                "k_R": np.asarray(self.k_R[b]).tolist(),
+                "k_Omega": np.asarray(self.k_Omega[b]).tolist(),
+                "mean_cost": float(self.mean_cost[b]),
+                "median_settling_time": float(self.median_settling_time[b]),
+                "failure_fraction": float(self.failure_fraction[b]),
+            },
+        }
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write everything to one ``.npz`` file (see `load`)."""
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        gs = fields.pop("grid_shape")
+        fields["grid_shape"] = np.asarray(gs if gs is not None else (-1, -1))
+        np.savez(path, **{k: np.asarray(v) for k, v in fields.items()})
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> SweepResult:
+        """Read a file written by `save`."""
+        with np.load(path) as z:
+            d = {k: z[k] for k in z.files}
+        gs = tuple(int(v) for v in d.pop("grid_shape"))
+        for name in ("threshold", "dt"):
+            d[name] = float(d[name])
+        for name in ("n_steps", "save_every"):
+            d[name] = int(d[name])
+        return cls(grid_shape=None if gs == (-1, -1) else gs, **d)
+
+
+def _nan_reduce(fn, values: np.ndarray) -> np.ndarray:
+    """``fn`` over axis 1 that returns NaN quietly for all-NaN rows."""
+    out = np.full(values.shape[0], np.nan)
+    rows = ~np.all(np.isnan(values), axis=1)
+    if rows.any():
+        out[rows] = fn(values[rows], axis=1)
+    return out
+
+
+# --------------------------------------------------------------------------
+# One chunk of runs
+# --------------------------------------------------------------------------
+
+
+def _run_metrics(scene, method, dt, n_steps, save_every, threshold, weights, k_R, k_O, R0, W0):
+    sc = with_initial_state(with_gains(scene, k_R, k_O), R0, W0)
+    traj = simulate(sc, method, dt, n_steps, save_every)
+    psi = 0.5 * (3.0 - jnp.sum(traj.Rd * traj.R, axis=(-1, -2)))
+    ok = traj.status.code == OK
+    n = psi.shape[0]
+    # Settling: the first saved time after which Psi < threshold at every later point.
+    above = ~(psi < threshold)
+    last_above = jnp.max(jnp.where(above, jnp.arange(n), -1))
+    settled = last_above < n - 1
+    t_settle = jnp.where(settled, traj.t[jnp.minimum(last_above + 1, n - 1)], jnp.inf)
+    nan = jnp.array(jnp.nan, psi.dtype)
+    return {
+        "final_psi": psi[-1],
+        "settling_time": jnp.where(ok, t_settle, nan),
+        "peak_torque": jnp.where(ok, jnp.max(jnp.sqrt(jnp.sum(traj.M**2, -1))), nan),
+        "cost": tracking_cost(traj, sc, weights),
+        "status_code": traj.status.code,
+        "fail_step": traj.status.step,
+    }
+
+
+@eqx.filter_jit
+def _run_chunk(scene, method, dt, n_steps, save_every, threshold, weights, k_R, k_O, R0, W0):
+    fn = lambda a, b, c, d: _run_metrics(
+        scene, method, dt, n_steps, save_every, threshold, weights, a, b, c, d
+    )
+    return jax.vmap(fn)(k_R, k_O, R0, W0)
+
+
+def _sharded(x: np.ndarray, sharding) -> Array:
+    """Place a host array on the mesh (each process supplies its own shards)."""
+    return jax.make_array_from_callback(x.shape, sharding, lambda idx: x[idx])
+
+
+def _to_host(tree):
+    if jax.process_count() > 1:  # pragma: no cover - multi-host only
+        from jax.experimental import multihost_utils
+
+        tree = multihost_utils.process_allgather(tree, tiled=True)
+    return jax.tree.map(np.asarray, tree)
+
+
+# --------------------------------------------------------------------------
+# The sweep
+# --------------------------------------------------------------------------
+
+
+def _as_key(key):
+    if isinstance(key, int):
+        return jax.random.key(key)
+    try:
+        jax.random.key_data(key)
+    except Exception:
+        raise ValueError(f"key must be a JAX PRNG key or an int seed, got {key!r}") from None
+    return key
+
+
+def initial_states(key, n: int, omega0_std: float = 0.0, dtype=None, Omega0=None):
+    """Initial attitudes (uniform on SO(3)) and rates; sample ``i`` from ``fold_in(key, i)``.
+
+    ``R0_i ~ Haar(SO(3))``, ``Omega0_i = Omega0 + omega0_std * N(0, I_3)``.
+
+    **Arguments:**
+
+    - `key`: a JAX PRNG key (or an int seed).
+    - `n`: number of samples.
+    - `omega0_std`: standard deviation of the random initial rate, rad/s.
+    - `dtype`: float dtype.
+    - `Omega0`: mean initial rate, shape `(3,)` (default zero).
+
+    **Returns:** ``(R0, Omega0)`` of shapes `(n, 3, 3)` and `(n, 3)`; sample
+    ``i`` does not depend on ``n``.
+    """
+    key = _as_key(key)
+    n = _check_int(n, "n", 0)
+    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    base = jnp.zeros(3, dtype) if Omega0 is None else jnp.asarray(Omega0, dtype)
+    return _draw(key, base, jnp.asarray(omega0_std, dtype), n)
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _draw(key, Omega0, omega0_std, n: int):
+    dtype = Omega0.dtype
+    keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(n))
+    R0 = jax.vmap(lambda k: random_rotation(jax.random.fold_in(k, 0), dtype=dtype))(keys)
+    noise = jax.vmap(lambda k: jax.random.normal(jax.random.fold_in(k, 1), (3,), dtype))(keys)
+    return R0, Omega0 + omega0_std * noise
+
+
+def _gain_pairs(k_R, k_Omega, grid: bool):
+    k_R = np.asarray(k_R, dtype=np.float64)
+    k_O = np.asarray(k_Omega, dtype=np.float64)
+    for k, name in ((k_R, "k_R"), (k_O, "k_Omega")):
+        if k.ndim not in (1, 2) or k.shape[0] < 1 or (k.ndim == 2 and k.shape[1] != 3):
+            raise ValueError(
+                f"{name} must have shape (n,) (scalar gains) or (n, 3) (per-axis), got {k.shape}"
+            )
+        if not np.all(np.isfinite(k)) or np.any(k < 0):
+            raise ValueError(f"{name} must be finite and >= 0")
+    if grid:
+        if k_R.ndim != 1 or k_O.ndim != 1:
+            raise ValueError("a grid sweep takes 1-D k_R and k_Omega; pass grid=False for pairs")
+        a, b = np.meshgrid(k_R, k_O, indexing="ij")
+        return a.reshape(-1), b.reshape(-1), (k_R.shape[0], k_O.shape[0])
+    if k_R.shape != k_O.shape:
+        raise ValueError(
+            "with grid=False, k_R and k_Omega are pairs and need the same shape, "
+            f"got {k_R.shape} and {k_O.shape}"
+        )
+    return k_R, k_O, None
+
+
+def _fingerprint(config: dict, scene, method) -> str:
+    h = hashlib.sha256(json.dumps(config, sort_keys=True).encode())
+    for tree in (scene, method):
+        arrays, static = eqx.partition(tree, eqx.is_array)
+        h.update(repr(jax.tree.structure(arrays)).encode())
+        h.update(repr(static).encode())
+        for leaf in jax.tree.leaves(arrays):
+            leaf = np.asarray(leaf)
+            h.update(str(leaf.dtype).encode() + leaf.tobytes())
+    return h.hexdigest()
+
+
+def sweep(
+    scene,
+    k_R,
+    k_Omega,
+    *,
+    key=0,
+    n_attitudes: int = 16,
+    grid: bool = True,
+    method: AbstractLieSolver | None = None,
+    dt: float = 1e-2,
+    n_steps: int = 1000,
+    save_every: int = 1,
+    omega0_std: float = 0.0,
+    threshold: float = 0.01,
+    weights: CostWeights | None = None,
+    chunk_size: int = 1024,
+    results_dir: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    devices=None,
+    progress: bool = True,
+    on_chunk: Callable[[int, int], None] | None = None,
+) -> SweepResult:
+    """Monte Carlo sweep of the geometric controller: gain pairs x random initial attitudes.
+
+    Every gain pair ``g`` is run from every initial state ``i`` (``R0_i``
+    uniform on SO(3), see `initial_states`), ``G x N`` runs of
+    ``simulate(scene with (k_R[g], k_Omega[g]) and (R0_i, Omega0_i))``. The
+    runs go through in chunks of `chunk_size` (vmapped, sharded over
+    `devices`); memory is bounded by the chunk size. With `results_dir`, each
+    finished chunk is saved at once (``chunk_NNNNN.npz``, written atomically)
+    and a later call with the same arguments loads it instead of running it
+    again: an interrupted sweep resumes where it stopped. A run that diverges
+    is flagged (`SweepResult.diverged`) and left out of the statistics.
+
+    **Arguments:**
+
+    - `scene`: a tracking scene with the geometric controller, e.g. `scenes.seed()`;
+      its reference, inertia and ``Rd0`` are kept, its gains and ``(R0, Omega0)`` replaced.
+    - `k_R`, `k_Omega`: gains, shape `(a,)` and `(b,)` (``grid=True``: all
+      ``a * b`` pairs) or both `(G,)` / `(G, 3)` (``grid=False``: a list of pairs).
+    - `key`: a JAX PRNG key or an int seed for the initial states.
+    - `n_attitudes`: ``N``, initial attitudes per gain pair.
+    - `grid`: cross `k_R` with `k_Omega` (``True``) or pair them (``False``).
+    - `method`: a Lie-group method (default `RKMK4()`).
+    - `dt`, `n_steps`, `save_every`: as in `simulate` (statistics use saved points).
+    - `omega0_std`: standard deviation of random initial rates (rad/s) added
+      to the scene's ``Omega0``.
+    - `threshold`: settling threshold on ``Psi = 1 - cos(angle)`` (0.01: 8.1 degrees).
+    - `weights`: `CostWeights` of the integrated cost.
+    - `chunk_size`: runs per chunk (rounded up to a multiple of the device count).
+    - `results_dir`: folder for the chunk files (created; ``None``: keep in memory).
+    - `overwrite`: discard chunk files of a different sweep in `results_dir`
+      instead of raising.
+    - `devices`: devices to shard each chunk over (default: all, `jax.devices()`).
+    - `progress`: show a tqdm progress bar over chunks.
+    - `on_chunk`: called as ``on_chunk(index, n_chunks)`` after each chunk is computed
+      (and saved).
+
+    **Returns:** a `SweepResult`.
+    """
+    _check_tracking_scene(scene)
+    if method is None:
+        method = RKMK4()
+    if not isinstance(method, AbstractLieSolver):
+        raise TypeError(f"method must be a so3jax Lie-group method, got {method!r}")
+    weights = _check_weights(weights)
+    n_att = _check_int(n_attitudes, "n_attitudes", 1)
+    n_steps = _check_int(n_steps, "n_steps", 1)
+    save_every = _check_int(save_every, "save_every", 1)
+    if n_steps % save_every:
+        raise ValueError(f"n_steps ({n_steps}) must be a multiple of save_every ({save_every})")
+    chunk_size = _check_int(chunk_size, "chunk_size", 1)
+    dt = float(dt)
+    if not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be positive and finite, got {dt}")
+    threshold = float(threshold)
+    if not (0 < threshold <= 2):
+        raise ValueError(f"threshold must be in (0, 2] (Psi = 1 - cos(angle)), got {threshold}")
+    omega0_std = float(omega0_std)
+    if not (math.isfinite(omega0_std) and omega0_std >= 0):
+        raise ValueError(f"omega0_std must be >= 0, got {omega0_std}")
+    key = _as_key(key)
+    devices = list(jax.devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("devices must not be empty")
+
+    dtype = scene.y0.R.dtype
+    kr, ko, grid_shape = _gain_pairs(k_R, k_Omega, grid)
+    G = kr.shape[0]
+    R0, W0 = initial_states(key, n_att, omega0_std, dtype, scene.y0.x[:3])
+    R0, W0 = np.asarray(R0), np.asarray(W0)
+    n_runs = G * n_att
+    n_dev = len(devices)
+    chunk = min(chunk_size, n_runs)
+    chunk = -(-chunk // n_dev) * n_dev
+    n_chunks = -(-n_runs // chunk)
+
+    folder = None
+    if results_dir is not None:
+        config = {
+            "k_R": kr.tolist(),
+            "k_Omega": ko.tolist(),
+            "key": np.asarray(jax.random.key_data(key)).tolist(),
+            "n_attitudes": n_att,
+            "omega0_std": omega0_std,
+            "dt": dt,
+            "n_steps": n_steps,
+            "save_every": save_every,
+            "threshold": threshold,
+            "weights": [float(weights.psi), float(weights.omega), float(weights.effort)],
+            "chunk": chunk,
+        }
+        folder = _prepare_folder(Path(results_dir), _fingerprint(config, scene, method), overwrite)
+
+    mesh = Mesh(np.asarray(devices), ("batch",))
+    sharding = NamedSharding(mesh, PartitionSpec("batch"))
+    g_idx = np.arange(n_runs) // n_att
+    i_idx = np.arange(n_runs) % n_att
+    parts: list[dict] = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n_chunks, desc="sweep", unit="chunk")
+    try:
+        for c in range(n_chunks):
+            lo, hi = c * chunk, min((c + 1) * chunk, n_runs)
+            path = None if folder is None else folder / f"chunk_{c:05d}.npz"
+            if path is not None and path.exists():
+                parts.append(_load_chunk(path, hi - lo))
+                if bar is not None:
+                    bar.update(1)
+                continue
+            # Pad the last chunk by repeating its last run: one compiled shape for all.
+            rows = np.minimum(np.arange(lo, lo + chunk), n_runs - 1)
+            args = (
+                kr[g_idx[rows]].astype(dtype),
+                ko[g_idx[rows]].astype(dtype),
+                R0[i_idx[rows]],
+                W0[i_idx[rows]],
+            )
+            args = [_sharded(a, sharding) for a in args]
+            out = _run_chunk(scene, method, dt, n_steps, save_every, threshold, weights, *args)
+            out = {k: v[: hi - lo] for k, v in _to_host(out).items()}
+            if path is not None and jax.process_index() == 0:
+                tmp = path.with_name(path.stem + ".tmp.npz")
+                np.savez(tmp, **out)
+                os.replace(tmp, path)
+            parts.append(out)
+            if bar is not None:
+                bar.update(1)
+            if on_chunk is not None:
+                on_chunk(c, n_chunks)
+    finally:
+        if bar is not None:
+            bar.close()
+
+    runs = {k: np.concatenate([p[k] for p in parts]).reshape(G, n_att) for k in RUN_FIELDS}
+    return SweepResult(
+        k_R=kr,
+        k_Omega=ko,
+        grid_shape=grid_shape,
+        R0=R0,
+        Omega0=W0,
+        threshold=threshold,
+        dt=dt,
+        n_steps=n_steps,
+        save_every=save_every,
+        **runs,
+    )
+
+
+def _prepare_folder(folder: Path, fingerprint: str, overwrite: bool) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    meta = folder / "sweep.json"
+    if meta.exists():
+        old = json.loads(meta.read_text()).get("fingerprint")
+        if old == fingerprint:
+            return folder
+        if not overwrite:
+            raise ValueError(
+                f"results_dir {str(folder)!r} holds the chunks of a different sweep; "
+                "use another folder, or overwrite=True to discard them"
+            )
+    for stale in folder.glob("chunk_*.npz"):
+        stale.unlink()
+    if jax.process_index() == 0:
+        meta.write_text(json.dumps({"fingerprint": fingerprint}))
+    return folder
+
+
+def _load_chunk(path: Path, n: int) -> dict:
+    with np.load(path) as z:
+        out = {k: z[k] for k in RUN_FIELDS}
+    if any(v.shape[0] != n for v in out.values()):
+        raise ValueError(f"{path} has the wrong number of runs; delete it to recompute it")
+    return out

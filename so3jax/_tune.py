@@ -1,0 +1,536 @@
+"""Tracking cost and gradient-based tuning of the geometric controller's gains.
+
+The cost of a tracking run is a time integral of the attitude error, the
+angular-velocity error and the control effort,
+
+    C = int_0^T ( w_Psi Psi + w_Omega |e_Omega|^2 + w_M |M|^2 ) dt,
+
+so that the best gains are finite: small gains track slowly (``Psi`` stays
+large), large gains pay in torque. `tracking_cost` evaluates it on a saved
+`Trajectory` (trapezoid over the saved points); `rollout_cost` integrates it
+alongside the simulation without saving anything and differentiates in memory
+sublinear in the horizon (a checkpointed scan of blocks of steps); `tune`
+minimises its mean over a batch of initial attitudes with optax.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._control import GeometricController, GeometricGains
+from ._integrators import RKMK4, AbstractLieSolver
+from ._scene import Scene
+from ._simulate import OK, Trajectory, _check_dt, _check_int, guarded_step
+from ._so3 import _as_float, _is_concrete, _mtv, _mv
+from ._state import LieState
+from ._types import Array, ArrayLike
+
+# --------------------------------------------------------------------------
+# Scenes with other gains and initial states
+# --------------------------------------------------------------------------
+
+
+def _check_tracking_scene(scene, name: str = "scene") -> None:
+    """A tracking scene driven by the geometric controller (what sweeps and tuning vary)."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"{name} must be a so3jax scene, got {type(scene).__name__}")
+    controller = getattr(scene, "controller", None)
+    if not isinstance(controller, GeometricController) or not hasattr(scene, "reference"):
+        raise ValueError(
+            f"{name} must be a tracking scene with the geometric controller, e.g. "
+            "so3jax.scenes.seed() or so3jax.scenes.tracking(inertia, GeometricGains(...), ...); "
+            f"got {type(scene).__name__} with controller {type(controller).__name__}"
+        )
+
+
+def with_gains(scene, k_R: Array, k_Omega: Array):
+    """The scene with the geometric gains replaced (traceable: works under `vmap`/`grad`)."""
+    dtype = scene.y0.R.dtype
+    return eqx.tree_at(
+        lambda s: (s.controller.gains.k_R, s.controller.gains.k_Omega),
+        scene,
+        (jnp.asarray(k_R, dtype), jnp.asarray(k_Omega, dtype)),
+    )
+
+
+def with_initial_state(scene, R0: Array, Omega0: Array):
+    """The scene started from ``(R0, Omega0)`` (the reference ``Rd0`` is kept)."""
+    dtype = scene.y0.R.dtype
+    R0 = jnp.asarray(R0, dtype)
+    Rd0 = scene.y0.R[1]
+    memory = scene.controller.init_memory(R0, Rd0).astype(dtype)
+    x = jnp.concatenate([jnp.asarray(Omega0, dtype), memory])
+    return eqx.tree_at(lambda s: s.y0, scene, LieState(jnp.stack([R0, Rd0]), x))
+
+
+def _gain_array(value, name: str, dtype) -> Array:
+    k = _as_float(value)
+    if k.shape not in ((), (3,)):
+        raise ValueError(f"{name} must be a scalar or a 3-vector, got shape {k.shape}")
+    if _is_concrete(k) and not (np.all(np.isfinite(np.asarray(k))) and np.all(np.asarray(k) > 0)):
+        raise ValueError(f"{name} must be positive and finite, got {np.asarray(k)}")
+    return k.astype(dtype)
+
+
+# --------------------------------------------------------------------------
+# The cost
+# --------------------------------------------------------------------------
+
+
+class CostWeights(eqx.Module):
+    """Weights of the tracking cost ``w_Psi Psi + w_Omega |e_Omega|^2 + w_M |M|^2``.
+
+    The default makes the optimum of the seed scenario finite and close to
+    the published gains: effort is cheap, but not free.
+
+    **Arguments:**
+
+    - `psi`: weight ``w_Psi`` of the attitude error function ``Psi`` (>= 0).
+    - `omega`: weight ``w_Omega`` of ``|e_Omega|^2`` in (rad/s)^-2 (>= 0).
+    - `effort`: weight ``w_M`` of ``|M|^2`` in (N m)^-2 (> 0 keeps the
+      optimal gains finite).
+    """
+
+    psi: Array
+    omega: Array
+    effort: Array
+
+    def __init__(self, psi: ArrayLike = 1.0, omega: ArrayLike = 0.1, effort: ArrayLike = 0.01):
+        for value, name in ((psi, "psi"), (omega, "omega"), (effort, "effort")):
+            v = _as_float(value)
+            if v.shape != ():
+                raise ValueError(f"CostWeights.{name} must be a scalar, got shape {v.shape}")
+            if _is_concrete(v) and not (math.isfinite(float(v)) and float(v) >= 0):
+                raise ValueError(f"CostWeights.{name} must be >= 0 and finite, got {float(v)}")
+        self.psi = _as_float(psi)
+        self.omega = _as_float(omega)
+        self.effort = _as_float(effort)
+
+
+def _integrand(weights: CostWeights, R, Omega, Rd, M, Omega_d) -> Array:
+    """``w_Psi Psi + w_Omega |e_Omega|^2 + w_M |M|^2`` at one or many points."""
+    psi = 0.5 * (3.0 - jnp.sum(Rd * R, axis=(-1, -2)))
+    # e_Omega = Omega - R^T Rd Omega_d (Lee, Leok & McClamroch 2010, eq. (11)).
+    e_Omega = Omega - _mtv(R, _mv(Rd, Omega_d))
+    return (
+        weights.psi * psi
+        + weights.omega * jnp.sum(e_Omega**2, -1)
+        + weights.effort * jnp.sum(M**2, -1)
+    )
+
+
+def _desired_rate(reference, t: Array) -> Array:
+    """``Omega_d(t)`` for times of any shape (the reference is called on scalars)."""
+    flat = jax.vmap(lambda s: reference(s)[0])(t.reshape(-1))
+    return flat.reshape(t.shape + (3,))
+
+
+def _check_weights(weights) -> CostWeights:
+    if weights is None:
+        return CostWeights()
+    if not isinstance(weights, CostWeights):
+        raise TypeError(f"weights must be a CostWeights, got {type(weights).__name__}")
+    return weights
+
+
+def tracking_cost(traj: Trajectory, scene, weights: CostWeights | None = None) -> Array:
+    """Integrated tracking cost of a saved run (trapezoid rule over the saved points).
+
+    ``C = int ( w_Psi Psi(R, Rd) + w_Omega |e_Omega|^2 + w_M |M|^2 ) dt`` with
+    ``e_Omega = Omega - R^T Rd Omega_d(t)``. Differentiable in everything the
+    trajectory depends on (gains, inertia, initial state): build the scene
+    inside the differentiated function, e.g.
+    ``jax.grad(lambda k: tracking_cost(simulate(make(k), ...), make(k)))``.
+    A run that stopped being finite has a NaN cost.
+
+    **Arguments:**
+
+    - `traj`: a `Trajectory` of a tracking scene (with ``Rd`` and ``M``), from
+      `simulate` or `simulate_ambient`; leading batch axes are allowed.
+    - `scene`: the tracking scene it was run from (its reference gives
+      ``Omega_d`` at the saved times).
+    - `weights`: a `CostWeights` (default `CostWeights()`).
+
+    **Returns:** the cost, shape `()` (or the batch shape of `traj`).
+
+    References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control
+    of a quadrotor UAV on SE(3)", CDC 2010 (errors ``Psi``, ``e_Omega``).
+    """
+    if not isinstance(traj, Trajectory):
+        raise TypeError(f"traj must be a Trajectory, got {type(traj).__name__}")
+    if traj.Rd is None or traj.M is None:
+        raise ValueError(
+            "traj must come from a tracking scene (it needs Rd and M), e.g. so3jax.scenes.seed()"
+        )
+    reference = getattr(scene, "reference", None)
+    if not callable(reference):
+        raise ValueError(
+            "scene must be the tracking scene the trajectory was run from (it needs a reference)"
+        )
+    weights = _check_weights(weights)
+    Omega_d = _desired_rate(reference, traj.t)
+    f = _integrand(weights, traj.R, traj.Omega, traj.Rd, traj.M, Omega_d)
+    dt = jnp.diff(traj.t, axis=-1)
+    return jnp.sum(0.5 * (f[..., 1:] + f[..., :-1]) * dt, axis=-1)
+
+
+def _point_cost(scene, weights, t, y) -> Array:
+    obs = scene.observe(t, y)
+    Omega_d = scene.reference(t)[0]
+    return _integrand(weights, obs["R"], obs["Omega"], obs["Rd"], obs["M"], Omega_d)
+
+
+def _block_size(checkpoint_every, n_save: int, save_every: int) -> int | None:
+    """Saved intervals per checkpointed block (``None``: no checkpointing)."""
+    if checkpoint_every is None:
+        return None
+    if checkpoint_every == "auto":
+        return max(1, round(math.sqrt(n_save)))
+    steps = _check_int(checkpoint_every, "checkpoint_every", 1)
+    return max(1, min(n_save, steps // save_every))
+
+
+def rollout_cost(
+    scene,
+    method: AbstractLieSolver,
+    dt: float | Array,
+    n_steps: int,
+    weights: CostWeights | None = None,
+    *,
+    save_every: int = 1,
+    checkpoint_every: int | str | None = "auto",
+    t0: float | Array = 0.0,
+) -> Array:
+    """The tracking cost of a run, integrated as it goes, with checkpointed gradients.
+
+    Equal to ``tracking_cost(simulate(scene, method, dt, n_steps, save_every),
+    scene, weights)`` (the trapezoid over every ``save_every``-th step), but
+    nothing is saved: the forward pass keeps one state, and reverse mode
+    keeps one state per block of ``checkpoint_every`` steps and recomputes
+    each block (`jax.checkpoint` around an inner `lax.scan`), so the memory of
+    a gradient grows like ``n / B + B`` steps (``sqrt(n)`` for the default),
+    not like ``n``. A run that stops being finite has a NaN cost.
+
+    **Arguments:**
+
+    - `scene`: a tracking scene (with ``Rd``, ``M`` observed and a reference).
+    - `method`: a Lie-group method, e.g. `RKMK4()`.
+    - `dt`: step size (> 0).
+    - `n_steps`: number of steps, a multiple of `save_every`.
+    - `weights`: a `CostWeights` (default `CostWeights()`).
+    - `save_every`: integrate the cost over every this many steps.
+    - `checkpoint_every`: steps per checkpointed block; ``"auto"`` (about
+      ``sqrt(n_steps)``) or ``None`` (no checkpointing: memory linear in the
+      horizon).
+    - `t0`: initial time.
+
+    **Returns:** the cost, shape `()`.
+
+    References: A. Griewank, A. Walther, "Evaluating Derivatives", SIAM 2008,
+    ch. 12 (checkpointing).
+    """
+    if not isinstance(scene, Scene) or not callable(getattr(scene, "reference", None)):
+        raise ValueError(f"scene must be a tracking scene, got {type(scene).__name__}")
+    if not isinstance(method, AbstractLieSolver):
+        raise TypeError(f"method must be a so3jax Lie-group method, got {method!r}")
+    weights = _check_weights(weights)
+    n_steps = _check_int(n_steps, "n_steps", 1)
+    save_every = _check_int(save_every, "save_every", 1)
+    if n_steps % save_every:
+        raise ValueError(f"n_steps ({n_steps}) must be a multiple of save_every ({save_every})")
+    if checkpoint_every is not None and checkpoint_every != "auto":
+        _check_int(checkpoint_every, "checkpoint_every", 1)
+    dtype = scene.y0.R.dtype
+    dt = _check_dt(dt, dtype)
+    t0 = jnp.asarray(t0, dtype)
+    n_save = n_steps // save_every
+    block = _block_size(checkpoint_every, n_save, save_every)
+    return _rollout(scene, method, dt, t0, weights, n_save, save_every, block)
+
+
+@eqx.filter_jit
+def _rollout(scene, method, dt, t0, weights, n_save: int, save_every: int, block):
+    # The step logic is that of `simulate` (freeze on failure), so the costs agree.
+    one_step = guarded_step(scene, method, dt, t0)
+
+    def save(carry, _):
+        state, acc, f_prev = carry
+        if save_every == 1:
+            state, _ = one_step(state, None)
+        else:
+            state, _ = jax.lax.scan(one_step, state, None, length=save_every)
+        y, k, code, _ = state
+        f = _point_cost(scene, weights, t0 + k * dt, y)
+        f = jnp.where(code == OK, f, jnp.nan)
+        acc = acc + 0.5 * (f_prev + f) * (dt * save_every)
+        return (state, acc, f), None
+
+    y0 = scene.y0
+    i32 = jnp.int32
+    state = (y0, jnp.array(0, i32), jnp.array(OK, i32), jnp.array(-1, i32))
+    f0 = _point_cost(scene, weights, t0, y0)
+    carry = (state, jnp.zeros_like(f0), f0)
+    if block is None:
+        carry, _ = jax.lax.scan(save, carry, None, length=n_save)
+        return carry[1]
+    n_blocks = -(-n_save // block)
+    padded = n_blocks * block != n_save
+
+    def save_or_skip(carry, i):
+        # The last block may run past n_save: those saves leave the carry alone
+        # (one compiled block for all, rather than a second scan for the tail).
+        new, _ = save(carry, None)
+        if padded:
+            new = jax.tree.map(lambda a, b: jnp.where(i < n_save, a, b), new, carry)
+        return new, None
+
+    # prevent_cse=False is safe (and lighter) under scan (see jax.checkpoint docs).
+    @functools.partial(jax.checkpoint, prevent_cse=False)
+    def block_fn(carry, b):
+        carry, _ = jax.lax.scan(save_or_skip, carry, b * block + jnp.arange(block))
+        return carry, None
+
+    carry, _ = jax.lax.scan(block_fn, carry, jnp.arange(n_blocks))
+    return carry[1]
+
+
+# --------------------------------------------------------------------------
+# Tuning
+# --------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneResult:
+    """What `tune` found.
+
+    **Fields:**
+
+    - `gains`: the `GeometricGains` with the lowest cost seen.
+    - `cost`: its (batch-mean) cost.
+    - `initial_cost`: the cost of the initial gains.
+    - `cost_history`: the cost at every iterate, shape `(n_iter + 1,)`.
+    - `k_R_history`, `k_Omega_history`: the gains at every iterate, shape
+      `(n_iter + 1,)` or `(n_iter + 1, 3)` (per-axis gains).
+    - `best_iteration`: index of `gains` in the histories.
+    """
+
+    gains: GeometricGains
+    cost: float
+    initial_cost: float
+    cost_history: np.ndarray
+    k_R_history: np.ndarray
+    k_Omega_history: np.ndarray
+    best_iteration: int
+
+
+def _initial_batch(scene, R0, Omega0):
+    dtype = scene.y0.R.dtype
+    if R0 is None:
+        R0 = scene.y0.R[0][None]
+    R0 = jnp.asarray(R0, dtype)
+    if R0.ndim == 2:
+        R0 = R0[None]
+    if R0.ndim != 3 or R0.shape[1:] != (3, 3):
+        raise ValueError(f"R0 must have shape (3, 3) or (batch, 3, 3), got {R0.shape}")
+    if Omega0 is None:
+        Omega0 = jnp.broadcast_to(scene.y0.x[:3], (R0.shape[0], 3))
+    Omega0 = jnp.asarray(Omega0, dtype)
+    if Omega0.ndim == 1:
+        Omega0 = jnp.broadcast_to(Omega0, (R0.shape[0], 3))
+    if Omega0.shape != (R0.shape[0], 3):
+        raise ValueError(f"Omega0 must have shape (3,) or ({R0.shape[0]}, 3), got {Omega0.shape}")
+    return R0, Omega0
+
+
+def expected_cost(
+    scene,
+    k_R: Array,
+    k_Omega: Array,
+    R0: Array,
+    Omega0: Array,
+    method: AbstractLieSolver,
+    dt,
+    n_steps: int,
+    weights: CostWeights | None = None,
+    *,
+    save_every: int = 1,
+    checkpoint_every: int | str | None = "auto",
+) -> Array:
+    """Mean `rollout_cost` over a batch of initial states, for given gains.
+
+    ``C(k) = 1/B sum_b C(k; R0_b, Omega0_b)``, vmapped over the batch.
+
+    **Arguments:**
+
+    - `scene`: a tracking scene with the geometric controller.
+    - `k_R`, `k_Omega`: gains, shape `()` or `(3,)`.
+    - `R0`: initial attitudes, shape `(B, 3, 3)`.
+    - `Omega0`: initial rates, shape `(B, 3)`.
+    - `method`, `dt`, `n_steps`, `weights`, `save_every`, `checkpoint_every`:
+      as in `rollout_cost`.
+
+    **Returns:** the mean cost, shape `()`.
+    """
+
+    def one(R, W):
+        sc = with_initial_state(with_gains(scene, k_R, k_Omega), R, W)
+        return rollout_cost(
+            sc,
+            method,
+            dt,
+            n_steps,
+            weights,
+            save_every=save_every,
+            checkpoint_every=checkpoint_every,
+        )
+
+    return jnp.mean(jax.vmap(one)(R0, Omega0))
+
+
+def tune(
+    scene,
+    gains0: GeometricGains | tuple = (1.0, 1.0),
+    *,
+    method: AbstractLieSolver | None = None,
+    dt: float = 1e-2,
+    n_steps: int = 300,
+    save_every: int = 1,
+    R0: Array | None = None,
+    Omega0: Array | None = None,
+    weights: CostWeights | None = None,
+    n_iter: int = 100,
+    learning_rate: float = 0.1,
+    optimizer=None,
+    per_axis: bool = False,
+    checkpoint_every: int | str | None = "auto",
+    gradient: str = "reverse",
+    progress: bool = False,
+) -> TuneResult:
+    """Tune the geometric controller's gains by gradient descent on the tracking cost.
+
+    Minimises ``C(k) = 1/B sum_b C(k; R0_b)`` (`expected_cost`) over
+    ``k = (k_R, k_Omega)`` in log coordinates ``k = exp(theta)`` (the gains
+    stay positive) with optax (Adam by default). Each iteration is one jitted
+    value-and-gradient through the checkpointed rollout (`rollout_cost`);
+    an iterate whose cost or gradient is not finite is skipped
+    (`optax.apply_if_finite`).
+
+    **Arguments:**
+
+    - `scene`: a tracking scene with the geometric controller (e.g. `scenes.seed()`).
+    - `gains0`: initial gains, a `GeometricGains` or ``(k_R, k_Omega)`` (> 0).
+    - `method`: a Lie-group method (default `RKMK4()`).
+    - `dt`, `n_steps`, `save_every`: the horizon ``n_steps * dt``.
+    - `R0`: initial attitudes averaged over, shape `(B, 3, 3)` (default: the
+      scene's own initial attitude), e.g. `random_rotation(key, (B,))`.
+    - `Omega0`: initial rates, shape `(3,)` or `(B, 3)` (default: the scene's).
+    - `weights`: a `CostWeights`.
+    - `n_iter`: number of optimiser steps.
+    - `learning_rate`: Adam's step in log-gain (0.1: about 10% per step).
+    - `optimizer`: an optax `GradientTransformation` (overrides the two above).
+    - `per_axis`: tune 3-vectors of gains (one per body axis) instead of scalars.
+    - `checkpoint_every`: as in `rollout_cost`.
+    - `gradient`: ``"reverse"`` (checkpointed reverse mode, memory ``~sqrt(n)``)
+      or ``"forward"`` (`jax.jacfwd`: constant memory; with only 2 or 6
+      parameters it is usually faster, see ``benchmarks/tune.py``).
+    - `progress`: show a tqdm progress bar.
+
+    **Returns:** a `TuneResult` (the best gains seen and the cost history).
+    """
+    import optax
+
+    _check_tracking_scene(scene)
+    if method is None:
+        method = RKMK4()
+    n_iter = _check_int(n_iter, "n_iter", 0)
+    if gradient not in ("reverse", "forward"):
+        raise ValueError(f"gradient must be 'reverse' or 'forward', got {gradient!r}")
+    dtype = scene.y0.R.dtype
+    if isinstance(gains0, GeometricGains):
+        k_R0, k_O0 = gains0.k_R, gains0.k_Omega
+    else:
+        try:
+            k_R0, k_O0 = gains0
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"gains0 must be a GeometricGains or a pair (k_R, k_Omega), got {gains0!r}"
+            ) from None
+    k_R0 = _gain_array(k_R0, "gains0.k_R", dtype)
+    k_O0 = _gain_array(k_O0, "gains0.k_Omega", dtype)
+    shape = (3,) if per_axis else ()
+    if not per_axis and (k_R0.shape or k_O0.shape):
+        raise ValueError("gains0 has per-axis gains: pass per_axis=True")
+    theta = (
+        jnp.log(jnp.broadcast_to(k_R0, shape)),
+        jnp.log(jnp.broadcast_to(k_O0, shape)),
+    )
+    R0, Omega0 = _initial_batch(scene, R0, Omega0)
+    if optimizer is None:
+        optimizer = optax.adam(learning_rate)
+    optimizer = optax.apply_if_finite(optimizer, max_consecutive_errors=5)
+    opt_state = optimizer.init(theta)
+
+    def loss(theta):
+        k_R, k_O = jnp.exp(theta[0]), jnp.exp(theta[1])
+        return expected_cost(
+            scene,
+            k_R,
+            k_O,
+            R0,
+            Omega0,
+            method,
+            dt,
+            n_steps,
+            weights,
+            save_every=save_every,
+            checkpoint_every=checkpoint_every,
+        )
+
+    def value_and_grad(theta):
+        if gradient == "reverse":
+            return jax.value_and_grad(loss)(theta)
+        grad, value = jax.jacfwd(lambda th: (loss(th),) * 2, has_aux=True)(theta)
+        return value, grad
+
+    @jax.jit
+    def step(theta, opt_state):
+        value, grad = value_and_grad(theta)
+        updates, opt_state = optimizer.update(grad, opt_state, theta)
+        return optax.apply_updates(theta, updates), opt_state, value
+
+    history, thetas = [], []
+    iterator = range(n_iter)
+    if progress:
+        from tqdm.auto import tqdm
+
+        iterator = tqdm(iterator, desc="tune", unit="it")
+    for _ in iterator:
+        thetas.append(theta)
+        theta, opt_state, value = step(theta, opt_state)
+        history.append(float(value))
+        if progress:
+            iterator.set_postfix(cost=f"{history[-1]:.5g}")
+    thetas.append(theta)
+    history.append(float(jax.jit(loss)(theta)))
+    cost = np.asarray(history)
+    k_R_hist = np.exp(np.stack([np.asarray(t[0]) for t in thetas]))
+    k_O_hist = np.exp(np.stack([np.asarray(t[1]) for t in thetas]))
+    finite = np.where(np.isfinite(cost), cost, np.inf)
+    best = int(np.argmin(finite))
+    gains = GeometricGains(jnp.asarray(k_R_hist[best], dtype), jnp.asarray(k_O_hist[best], dtype))
+    return TuneResult(
+        gains=gains,
+        cost=float(cost[best]),
+        initial_cost=float(cost[0]),
+        cost_history=cost,
+        k_R_history=k_R_hist,
+        k_Omega_history=k_O_hist,
+        best_iteration=best,
+    )

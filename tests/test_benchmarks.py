@@ -1,0 +1,72 @@
+"""Each benchmark script runs in --quick mode and writes its JSON and PNG."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+def _run(script: str, out: Path) -> dict:
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    proc = subprocess.run(
+        [sys.executable, str(BENCH / script), "--quick", "--repeats", "1", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    name = script.removesuffix(".py")
+    js, png = out / f"{name}-quick.json", out / f"{name}-quick.png"
+    assert js.is_file() and png.is_file()
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not (out / f"{name}.json").exists()  # quick never writes the full names
+    return json.loads(js.read_text())
+
+
+@pytest.mark.slow
+def test_work_precision_quick(tmp_path):
+    res = _run("work_precision.py", tmp_path)
+    assert res["env"]["backend"]
+    for scene in res["scenes"].values():
+        methods = {p["method"] for p in scene["points"]}
+        assert {"RKMK4", "diffrax Tsit5", "SciPy RK45"} <= methods
+        for p in scene["points"]:
+            assert p["ok"] and p["run_s"] > 0 and p["fevals"] > 0
+        # Errors shrink with the step / tolerance for every method.
+        for m in methods:
+            pts = [p for p in scene["points"] if p["method"] == m]
+            if len(pts) > 1:
+                assert pts[-1]["att_err"] < pts[0]["att_err"]
+        lie = [p for p in scene["points"] if p["family"] == "lie"]
+        assert max(p["orth_err"] for p in lie) < 1e-13
+
+
+@pytest.mark.slow
+def test_stability_quick(tmp_path):
+    res = _run("stability.py", tmp_path)
+    sd = res["stable_dt"]
+    for label, dts in sd["max_dt"].items():
+        assert len(dts) == len(sd["gains"])
+        # Stiffer gains never allow a larger step.
+        assert all(b <= a * 1.001 for a, b in zip(dts, dts[1:], strict=False)), label
+    series = res["long_horizon"]["series"]
+    assert series["RKMK4"]["max_orth_err"] < 1e-13
+    assert series["diffrax RK4"]["final_orth_err"] > 100 * series["RKMK4"]["final_orth_err"]
+    assert res["flips"]["reference_flips"] >= 1
+
+
+@pytest.mark.slow
+def test_throughput_quick(tmp_path):
+    res = _run("throughput.py", tmp_path)
+    rows = res["sweep"]["rows"]
+    assert {r["dtype"] for r in rows} == {"float32", "float64"}
+    assert all(r["finite"] and r["body_steps_per_s"] > 0 for r in rows)
+    eq = res["equal_accuracy"]
+    assert eq["rkmk4_err"] < 1e-7 and eq["tsit5_err"] < 1e-7
+    assert eq["RKMK4"]["trajectories_per_s"] > 0 and eq["diffrax Tsit5"]["trajectories_per_s"] > 0

@@ -1,0 +1,124 @@
+"""The notebooks in ``notebooks/`` run from top to bottom without an error.
+
+Each notebook is executed in a fresh Jupyter kernel of the interpreter that
+runs pytest (so the notebooks use whatever environment the suite uses), with
+``SO3JAX_NB_QUICK=1`` (smaller runs), the working tree first on the path and
+a scratch folder as the working directory. The notebooks check their own
+results with ``assert`` cells, so a failure here is either a crash or a
+failed check, reported with the cell's traceback. The notebooks are executed
+two at a time (most of their time is single-threaded compilation) and must be
+stored with their outputs cleared.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+nbformat = pytest.importorskip("nbformat")
+nbclient = pytest.importorskip("nbclient")
+pytest.importorskip("ipykernel")
+
+ROOT = Path(__file__).resolve().parents[1]
+NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
+IDS = [p.stem for p in NOTEBOOKS]
+CELL_TIMEOUT = 600  # seconds per cell: generous, for a loaded 2-core machine
+KERNEL = "so3jax-tests"
+
+
+def test_there_are_notebooks():
+    assert len(NOTEBOOKS) >= 3, f"expected the notebooks in {ROOT / 'notebooks'}"
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=IDS)
+def test_notebook_is_stored_without_outputs(path):
+    nb = nbformat.read(path, as_version=4)
+    nbformat.validate(nb)
+    for i, cell in enumerate(nb.cells):
+        if cell.cell_type == "code":
+            assert cell.outputs == [], f"{path.name}: cell {i} has stored outputs; clear them"
+            assert cell.execution_count is None, f"{path.name}: cell {i} has an execution count"
+
+
+def _write_kernel_spec(folder: Path) -> None:
+    """A kernel spec that starts this very interpreter, whichever virtualenv it is.
+
+    (A user-wide ``python3`` spec could point at another Python.)
+    """
+    spec = folder / "kernels" / KERNEL
+    spec.mkdir(parents=True)
+    argv = [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"]
+    kernel = {"argv": argv, "display_name": "so3jax tests", "language": "python"}
+    (spec / "kernel.json").write_text(json.dumps(kernel))
+
+
+def _kernel_env(scratch: Path) -> dict[str, str]:
+    env = {
+        "SO3JAX_NB_QUICK": "1",
+        # Inline figures, as for a reader (conftest selects Agg for this process,
+        # which the kernel would otherwise inherit).
+        "MPLBACKEND": "module://matplotlib_inline.backend_inline",
+        "MPLCONFIGDIR": str(scratch / "mplconfig"),
+        "JUPYTER_PATH": str(scratch / "jupyter"),
+        # Test the working tree, even where so3jax is not installed in editable mode.
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+    }
+    return env
+
+
+def _execute(path: Path, cwd: Path) -> list[str]:
+    """Run a notebook in a fresh kernel; return its errors (empty: it ran through)."""
+    nb = nbformat.read(path, as_version=4)
+    cwd.mkdir(parents=True)
+    client = nbclient.NotebookClient(
+        nb,
+        timeout=CELL_TIMEOUT,
+        kernel_name=KERNEL,
+        # A scratch working directory: anything a notebook writes stays out of the repo.
+        resources={"metadata": {"path": str(cwd)}},
+    )
+    try:
+        client.execute()
+    except nbclient.exceptions.CellExecutionError as e:
+        return [re.sub(r"\x1b\[[0-9;]*m", "", str(e))]  # without the terminal colours
+    return [
+        f"cell {i}: {o['ename']}: {o['evalue']}"
+        for i, cell in enumerate(nb.cells)
+        for o in cell.get("outputs", [])
+        if o.get("output_type") == "error"
+    ]
+
+
+@pytest.fixture(scope="module")
+def executions(request, tmp_path_factory):
+    """Start every selected notebook, two at a time; map each path to its future."""
+    selected = {
+        item.callspec.params["path"]
+        for item in request.session.items
+        if getattr(item, "originalname", None) == "test_notebook_runs"
+    }
+    scratch = tmp_path_factory.mktemp("notebooks")
+    _write_kernel_spec(scratch / "jupyter")
+    with pytest.MonkeyPatch.context() as mp:
+        # Kernels inherit this process's environment when they start.
+        for key, value in _kernel_env(scratch).items():
+            mp.setenv(key, value)
+        workers = max(1, min(2, os.cpu_count() or 1))
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            yield {
+                p: pool.submit(_execute, p, scratch / p.stem) for p in NOTEBOOKS if p in selected
+            }
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=IDS)
+def test_notebook_runs(path, executions):
+    errors = executions[path].result()
+    if errors:
+        pytest.fail(f"{path.name} failed:\n" + "\n".join(errors), pytrace=False)

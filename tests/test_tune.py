@@ -1,0 +1,156 @@
+"""Tracking cost, its gradients, checkpointed memory and gradient-based tuning."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import so3jax as s
+from so3jax._tune import with_gains
+
+DT = 1e-2
+
+
+def _seed_with(p, scene=None):
+    """The seed scene with gains p[0], p[1] and inertia diag(J0) * p[2:5]."""
+    scene = s.scenes.seed() if scene is None else scene
+    sc = with_gains(scene, p[0], p[1])
+    return eqx.tree_at(lambda c: c.body.inertia, sc, scene.body.inertia * p[2:5])
+
+
+def _central_fd(f, p, rel=1e-5):
+    p = np.asarray(p, dtype=np.float64)
+    g = np.zeros_like(p)
+    for i in range(p.size):
+        h = rel * max(abs(p[i]), 1.0)
+        e = np.zeros_like(p)
+        e[i] = h
+        g[i] = (float(f(p + e)) - float(f(p - e))) / (2 * h)
+    return g
+
+
+P0 = np.array([3.0, 1.5, 1.0, 1.0, 1.0])  # k_R, k_Omega, inertia scales
+
+
+def test_rollout_cost_equals_tracking_cost_of_simulate():
+    sc = with_gains(s.scenes.seed(), 3.0, 1.5)
+    for n, save_every, cks in ((50, 1, ("auto", None)), (60, 3, (7,))):
+        traj = s.simulate(sc, s.RKMK4(), DT, n, save_every)
+        ref = float(s.tracking_cost(traj, sc))
+        for ck in cks:
+            c = float(
+                s.rollout_cost(sc, s.RKMK4(), DT, n, save_every=save_every, checkpoint_every=ck)
+            )
+            assert c == pytest.approx(ref, rel=1e-13, abs=0)
+    # An independent quadrature: the trapezoid rule written out on the saved points.
+    traj = s.simulate(sc, s.RKMK4(), DT, 50)
+    psi = np.asarray(s.attitude_error_function(traj.R, traj.Rd))
+    Od = np.stack([np.asarray(sc.reference(t)[0]) for t in np.asarray(traj.t)])
+    R, Rd, W, M = (np.asarray(a) for a in (traj.R, traj.Rd, traj.Omega, traj.M))
+    eW = W - np.einsum("nji,njk,nk->ni", R, Rd, Od)
+    w = s.CostWeights()
+    f = float(w.psi) * psi + float(w.omega) * (eW**2).sum(-1) + float(w.effort) * (M**2).sum(-1)
+    assert float(s.tracking_cost(traj, sc)) == pytest.approx(np.trapezoid(f, traj.t), rel=1e-12)
+
+
+@pytest.mark.parametrize("integrator", ["RKMK4", "ambient-rk4"])
+def test_gradient_matches_central_differences(integrator):
+    """d cost / d (k_R, k_Omega, inertia) against central differences, float64, 1e-6 relative."""
+    n = 100
+
+    def cost(p):
+        sc = _seed_with(p)
+        if integrator == "RKMK4":
+            traj = s.simulate(sc, s.RKMK4(), DT, n)
+        else:
+            traj = s.simulate_ambient(sc, "rk4", dt=DT, n_steps=n)
+        return s.tracking_cost(traj, sc)
+
+    p = jnp.asarray(P0)
+    g = np.asarray(jax.jit(jax.grad(cost))(p))
+    fd = _central_fd(jax.jit(cost), P0)
+    assert np.all(np.abs(g) > 1e-4)  # every parameter matters
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+def test_checkpointed_reverse_pass_is_sublinear_in_memory_and_exact():
+    """Temp memory of the gradient: ~sqrt(n) with checkpointing, ~n without."""
+    scene = s.scenes.seed()
+    method = s.LieEuler()  # the memory structure does not depend on the method; cheap to compile
+    k = jnp.array([3.0, 1.5])
+
+    def grad_fn(n, ck):
+        f = lambda k: s.rollout_cost(
+            with_gains(scene, k[0], k[1]), method, DT, n, checkpoint_every=ck
+        )
+        return jax.jit(jax.grad(f))
+
+    def temp(n, ck):
+        return grad_fn(n, ck).lower(k).compile().memory_analysis().temp_size_in_bytes
+
+    small, big = 400, 6400
+    ck_small, ck_big, plain_big = temp(small, "auto"), temp(big, "auto"), temp(big, None)
+    # 16x the horizon: sqrt -> ~4x; linear (no checkpoints) -> ~16x.
+    assert ck_big / ck_small < 6
+    assert plain_big / ck_small > 10
+    assert ck_big < plain_big / 8
+    # The checkpointed reverse pass gives the forward-mode derivative.
+    g_ck = np.asarray(grad_fn(small, "auto")(k))
+    f = lambda k: s.rollout_cost(with_gains(scene, k[0], k[1]), method, DT, small)
+    np.testing.assert_allclose(g_ck, np.asarray(jax.jit(jax.jacfwd(f))(k)), rtol=1e-11)
+
+
+def test_tune_lowers_cost_and_lands_near_the_best_grid_point():
+    scene = s.scenes.seed()
+    n = 300  # 3 s at dt = 1e-2
+    key = jax.random.key(0)
+    R0, _ = s.initial_states(key, 2)
+    res = s.tune(scene, (1.0, 1.0), dt=DT, n_steps=n, R0=R0, n_iter=100, learning_rate=0.1)
+    assert res.cost < 0.8 * res.initial_cost
+    assert res.cost_history.shape == (101,)
+    assert res.k_R_history.shape == (101,)
+    assert res.cost == pytest.approx(res.cost_history[res.best_iteration])
+    # A fine grid over the same cost, vmapped: the sweep's mean cost per gain pair.
+    grid = s.sweep(
+        scene,
+        np.geomspace(1.0, 60.0, 25),
+        np.geomspace(0.3, 20.0, 25),
+        key=key,
+        n_attitudes=2,
+        dt=DT,
+        n_steps=n,
+        chunk_size=1250,
+        progress=False,
+    )
+    best = grid.best()
+    assert 0 < best < 624 and np.isfinite(grid.mean_cost[best])
+    assert res.cost <= 1.05 * grid.mean_cost[best]
+
+
+def test_forward_and_reverse_tuning_agree():
+    scene = s.scenes.seed()
+    # Lie-Euler: the cheapest method to compile; the tuning code is the same.
+    kw = dict(method=s.LieEuler(), dt=DT, n_steps=40, n_iter=3, per_axis=True)
+    rev = s.tune(scene, (2.0, 1.0), gradient="reverse", **kw)
+    fwd = s.tune(scene, (2.0, 1.0), gradient="forward", **kw)
+    assert rev.k_R_history.shape == (4, 3)
+    np.testing.assert_allclose(rev.cost_history, fwd.cost_history, rtol=1e-10)
+    np.testing.assert_allclose(rev.k_Omega_history, fwd.k_Omega_history, rtol=1e-10)
+
+
+def test_bad_input():
+    scene = s.scenes.seed()
+    with pytest.raises(ValueError, match="effort"):
+        s.CostWeights(effort=-1.0)
+    free = s.scenes.free_body(jnp.array([1.0, 2.0, 3.0]), jnp.eye(3), jnp.ones(3))
+    with pytest.raises(ValueError, match="Rd and M"):
+        s.tracking_cost(s.simulate(free, s.LieEuler(), DT, 2), scene)
+    with pytest.raises(ValueError, match="gradient"):
+        s.tune(scene, gradient="sideways")
+    with pytest.raises(ValueError, match="gains0"):
+        s.tune(scene, (1.0, -1.0))
+    with pytest.raises(ValueError, match="geometric controller"):
+        s.tune(s.scenes.unwinding())
+    with pytest.raises(ValueError, match="checkpoint_every"):
+        s.rollout_cost(scene, s.RKMK4(), DT, 10, checkpoint_every=0)
