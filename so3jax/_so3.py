@@ -317,6 +317,11 @@ def _exp(w: Array) -> Array:
     return (1.0 - B * t[..., None, None]) * eye + A * _hat(w) + B * wwT
 
 
+# Jitted cores behind the public functions: an eager call then runs one compiled
+# program instead of dozens of dispatched operations (checks stay outside).
+_exp_jit = jax.jit(_exp)
+
+
 def _expm1(w: Array) -> Array:
     """``exp(w) - I = A hat(w) + B hat(w)^2``, accurate relative to ``|w|``."""
     t = _dot(w, w)
@@ -348,7 +353,7 @@ def exp(w: Vec3) -> Rot:
 
     **Returns:** rotation matrix, shape `(..., 3, 3)`.
     """
-    return _exp(_prep(w, "w", (3,)))
+    return _exp_jit(_prep(w, "w", (3,)))
 
 
 def _to_quat(R: Array) -> Array:
@@ -392,6 +397,10 @@ def _log_from_quat(q: Array) -> Array:
     return jnp.where(small, series, closed)[..., None] * v
 
 
+_to_quat_jit = jax.jit(_to_quat)
+_log_jit = jax.jit(lambda R: _log_from_quat(_to_quat(R)))
+
+
 def log(R: Rot) -> Vec3:
     """Logarithm SO(3) -> so(3): the rotation vector ``w`` with ``|w| <= pi``.
 
@@ -405,7 +414,7 @@ def log(R: Rot) -> Vec3:
 
     **Returns:** rotation vector, shape `(..., 3)`.
     """
-    return _log_from_quat(_to_quat(_prep(R, "R", (3, 3))))
+    return _log_jit(_prep(R, "R", (3, 3)))
 
 
 def _jac(w: Array, sign_b: float, which_b: str, which_c: str, b_const: float | None) -> Array:
@@ -416,6 +425,9 @@ def _jac(w: Array, sign_b: float, which_b: str, which_c: str, b_const: float | N
     eye = _eye_like(w, w.shape[:-1])
     wwT = w[..., :, None] * w[..., None, :]
     return eye + B * W + C * (wwT - t[..., None, None] * eye)
+
+
+_jac_jit = jax.jit(_jac, static_argnums=(1, 2, 3, 4))
 
 
 def left_jacobian(w: Vec3) -> Mat3:
@@ -433,7 +445,7 @@ def left_jacobian(w: Vec3) -> Mat3:
     References: G. S. Chirikjian, *Stochastic Models, Information Theory, and
     Lie Groups*, vol. 2, Birkhauser 2011, sec. 10.6.
     """
-    return _jac(_prep(w, "w", (3,)), 1.0, "B", "C", None)
+    return _jac_jit(_prep(w, "w", (3,)), 1.0, "B", "C", None)
 
 
 def right_jacobian(w: Vec3) -> Mat3:
@@ -447,7 +459,7 @@ def right_jacobian(w: Vec3) -> Mat3:
 
     **Returns:** shape `(..., 3, 3)`.
     """
-    return _jac(_prep(w, "w", (3,)), -1.0, "B", "C", None)
+    return _jac_jit(_prep(w, "w", (3,)), -1.0, "B", "C", None)
 
 
 def left_jacobian_inv(w: Vec3) -> Mat3:
@@ -461,7 +473,7 @@ def left_jacobian_inv(w: Vec3) -> Mat3:
 
     **Returns:** shape `(..., 3, 3)`.
     """
-    return _jac(_prep(w, "w", (3,)), -1.0, "", "D", 0.5)
+    return _jac_jit(_prep(w, "w", (3,)), -1.0, "", "D", 0.5)
 
 
 def right_jacobian_inv(w: Vec3) -> Mat3:
@@ -475,7 +487,7 @@ def right_jacobian_inv(w: Vec3) -> Mat3:
 
     **Returns:** shape `(..., 3, 3)`.
     """
-    return _jac(_prep(w, "w", (3,)), 1.0, "", "D", 0.5)
+    return _jac_jit(_prep(w, "w", (3,)), 1.0, "", "D", 0.5)
 
 
 def _dexpinv(u: Array, v: Array) -> Array:
@@ -505,6 +517,9 @@ def _from_quat(q: Array) -> Array:
     )
 
 
+_from_quat_jit = jax.jit(_from_quat)
+
+
 def from_quat(q: Quat) -> Rot:
     """Rotation matrix of a quaternion ``(w, x, y, z)`` (normalised first).
 
@@ -520,7 +535,7 @@ def from_quat(q: Quat) -> Rot:
     q = _prep(q, "q", (4,))
     if _is_concrete(q) and np.any(_np_norm2(q) == 0):
         raise ValueError("q has zero norm; a quaternion must be non-zero to define a rotation")
-    return _from_quat(q)
+    return _from_quat_jit(q)
 
 
 def to_quat(R: Rot) -> Quat:
@@ -534,7 +549,7 @@ def to_quat(R: Rot) -> Quat:
 
     **Returns:** quaternion, shape `(..., 4)`.
     """
-    return _to_quat(_prep(R, "R", (3, 3)))
+    return _to_quat_jit(_prep(R, "R", (3, 3)))
 
 
 def quat_multiply(p: Quat, q: Quat) -> Quat:
@@ -571,7 +586,7 @@ def from_axis_angle(axis: Vec3, angle: Scalar) -> Rot:
     if _is_concrete(axis) and np.any(_np_norm2(axis) == 0):
         raise ValueError("axis has zero norm; give a non-zero rotation axis")
     u = axis / jnp.sqrt(n2)[..., None]
-    return _exp(u * angle[..., None])
+    return _exp_jit(u * angle[..., None])
 
 
 def to_axis_angle(R: Rot) -> tuple[Vec3, Scalar]:
@@ -732,6 +747,9 @@ def _project(M: Array) -> Array:
     return jnp.where((det > 0)[..., None, None], X, jnp.nan)
 
 
+_project_jit = jax.jit(_project)
+
+
 def project(M: Mat3) -> Rot:
     """Nearest rotation to ``M`` in the Frobenius norm (orthogonal polar factor).
 
@@ -749,7 +767,7 @@ def project(M: Mat3) -> Rot:
             "project needs det(M) > 0: a matrix with det <= 0 has no unique nearest rotation "
             "(it is a reflection or singular)"
         )
-    return _project(M)
+    return _project_jit(M)
 
 
 def random_rotation(key, shape: tuple[int, ...] = (), dtype=None) -> Rot:
