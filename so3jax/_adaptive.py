@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from ._integrators import AbstractLieSolver
 from ._integrators._diffrax import DiffraxLieAdaptiveSolver, diffrax_solver, lie_term
 from ._scene import Scene
-from ._simulate import NONFINITE, OK, Status, Trajectory, _check_int, _trajectory
+from ._simulate import Trajectory, _check_int, _trajectory, status_from_diffrax
 from ._so3 import _is_concrete
 from ._state import all_finite
 from ._types import Array
@@ -165,7 +165,6 @@ def _simulate_adaptive(scene, solver, t0, t1, ts, rtol, atol, dt0, max_steps: in
     )
     (ts_saved, _), (obs, y_last) = sol.ts, sol.ys
     y = jax.tree.map(lambda a: a[0], y_last)
-    success = (sol.result == diffrax.RESULTS.successful) & all_finite(y)
     rows_ok = jnp.isfinite(ts_saved)  # the points diffrax reached before any failure
     obs = jax.tree.map(
         lambda a: jnp.where(rows_ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, jnp.nan), obs
@@ -173,9 +172,7 @@ def _simulate_adaptive(scene, solver, t0, t1, ts, rtol, atol, dt0, max_steps: in
     i32 = jnp.int32
     n_steps = sol.stats["num_steps"].astype(i32)
     n_acc = sol.stats["num_accepted_steps"].astype(i32)
-    status = Status(
-        code=jnp.where(success, OK, NONFINITE).astype(i32), step=jnp.where(success, -1, n_acc)
-    )
+    status = status_from_diffrax(sol.result, all_finite(y), n_acc)
     # FSAL: one evaluation in `init`, stages - 1 per attempted step, and two for
     # diffrax's initial step selection when dt0 is not given.
     stages = solver.method.tableau.stages

@@ -35,7 +35,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._scene import Scene
-from ._simulate import NONFINITE, OK, Status, Trajectory, _check_dt, _check_int, _trajectory
+from ._simulate import (
+    NONFINITE,
+    OK,
+    Status,
+    Trajectory,
+    _check_dt,
+    _check_int,
+    _trajectory,
+    status_from_diffrax,
+)
 from ._so3 import _hat, _is_concrete, _mm, _project
 from ._state import LieState, all_finite
 from ._types import Array
@@ -348,7 +357,6 @@ def _adaptive(scene, solver, t0, t1, ts, rtol, atol, dt0, max_steps: int, projec
     if project:
         ys = _project_state(ys)
     rows_ok = jax.vmap(all_finite)(ys)
-    success = (sol.result == diffrax.RESULTS.successful) & jnp.all(rows_ok)
     # Rows past a failure are not finite (diffrax fills them with inf): NaN them,
     # and restart from the last good one.
     idx = jnp.arange(ts.shape[0])
@@ -360,9 +368,7 @@ def _adaptive(scene, solver, t0, t1, ts, rtol, atol, dt0, max_steps: int, projec
     )
     i32 = jnp.int32
     n_acc = sol.stats["num_accepted_steps"].astype(i32)
-    status = Status(
-        code=jnp.where(success, OK, NONFINITE).astype(i32), step=jnp.where(success, -1, n_acc)
-    )
+    status = status_from_diffrax(sol.result, jnp.all(rows_ok), n_acc)
     per_step, at_start = _evals_per_step(solver, project)
     n_steps = sol.stats["num_steps"].astype(i32)
     initial = 0 if dt0 is not None else 2  # diffrax's initial step selection: two evaluations

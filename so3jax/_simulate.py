@@ -15,11 +15,12 @@ from ._state import LieState, all_finite
 from ._types import Array, Float, Int
 
 #: Status codes of a run.
-OK, NONFINITE, SOLVER_FAILED = 0, 1, 2
+OK, NONFINITE, SOLVER_FAILED, MAX_STEPS = 0, 1, 2, 3
 _MESSAGES = {
     OK: "finite to the end",
     NONFINITE: "the state stopped being finite",
     SOLVER_FAILED: "the implicit solve of a step did not converge",
+    MAX_STEPS: "the step budget (max_steps) ran out before t1",
 }
 
 
@@ -29,7 +30,8 @@ class Status(eqx.Module):
     **Fields:**
 
     - `code`: 0 (finite to the end), 1 (the state stopped being finite), 2 (an
-      implicit solve did not converge); one per run under `vmap`.
+      implicit solve did not converge), 3 (adaptive runs: ``max_steps`` ran
+      out); one per run under `vmap`.
     - `step`: index of the step that failed (the state at time
       ``t0 + step * dt`` was the last good one), or -1.
 
@@ -50,6 +52,20 @@ class Status(eqx.Module):
         if code == OK:
             return _MESSAGES[OK]
         return f"{_MESSAGES[code]} at step {int(self.step)}"
+
+
+def status_from_diffrax(result, ok: Array, n_accepted: Array) -> Status:
+    """`Status` of a `diffrax.diffeqsolve` run (``throw=False``).
+
+    ``ok``: the saved states are finite; ``n_accepted``: accepted steps, reported
+    as the failing step.
+    """
+    import diffrax
+
+    ok = (result == diffrax.RESULTS.successful) & ok
+    budget = result == diffrax.RESULTS.max_steps_reached
+    code = jnp.where(ok, OK, jnp.where(budget, MAX_STEPS, NONFINITE)).astype(jnp.int32)
+    return Status(code=code, step=jnp.where(ok, -1, n_accepted).astype(jnp.int32))
 
 
 class Trajectory(eqx.Module):

@@ -156,7 +156,8 @@ def test_extras_and_counts(free):
 
 def test_max_steps_flags_the_run(free):
     tr = s.simulate(free, s.RKMK32(), t1=10.0, rtol=1e-10, saveat=11, max_steps=5)
-    assert int(tr.status.code) == 1 and not bool(tr.status.ok)
+    assert int(tr.status.code) == 3 and not bool(tr.status.ok)
+    assert "max_steps" in tr.status.message()
     assert int(tr.status.step) >= 1
     assert np.all(np.isnan(np.asarray(tr.R[-1])))
     assert np.isfinite(np.asarray(tr.R[0])).all()
