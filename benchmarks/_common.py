@@ -190,3 +190,17 @@ def interp_loglog(err, cost, target: float) -> float:
     if lt < le[0] or lt > le[-1]:
         return math.nan
     return float(np.exp(np.interp(lt, le, lc)))
+
+
+def lie_methods() -> dict:
+    """The fixed-step Lie-group methods the benchmarks compare, by display name."""
+    import so3jax as s
+
+    return {
+        "LieEuler": s.LieEuler,
+        "CG3": s.CG3,
+        "RKMK4": s.RKMK4,
+        "CF4": s.CF4,
+        "RKMK45": s.RKMK45,
+        "LGVI": s.LGVI,
+    }

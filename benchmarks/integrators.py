@@ -30,19 +30,13 @@ import jax.numpy as jnp  # noqa: E402
 import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
+import _common as C  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 
 import so3jax as so3  # noqa: E402
 from so3jax._so3 import _exp, _mm  # noqa: E402
 
-METHODS = {
-    "LieEuler": so3.LieEuler,
-    "CG3": so3.CG3,
-    "RKMK4": so3.RKMK4,
-    "CF4": so3.CF4,
-    "RKMK45": so3.RKMK45,
-    "LGVI": so3.LGVI,
-}
+METHODS = C.lie_methods()
 
 
 def best_time(fn, repeats: int) -> tuple[float, float]:
@@ -119,10 +113,11 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="small sizes (a few seconds)")
     p.add_argument("--out", default=str(Path(__file__).parent / "results"), help="output folder")
+    p.add_argument("--repeats", type=int, default=None, help="timing repeats (min is kept)")
     args = p.parse_args(argv)
     n_single = 2_000 if args.quick else 100_000
     batch, n_batch = (64, 50) if args.quick else (4096, 200)
-    repeats = 2 if args.quick else 5
+    repeats = args.repeats or (2 if args.quick else 5)
     dt = 1e-3
     scene = free_body_scene(so3.exp(jnp.array([0.3, 0.2, -0.1])))
     R0s = so3.random_rotation(jax.random.key(1), (batch,))

@@ -37,14 +37,7 @@ import numpy as np
 import so3jax as s
 from so3jax._ambient import _ambient_field
 
-LIE = {
-    "LieEuler": s.LieEuler,
-    "LGVI": s.LGVI,
-    "CG3": s.CG3,
-    "RKMK4": s.RKMK4,
-    "CF4": s.CF4,
-    "RKMK45": s.RKMK45,
-}
+LIE = C.lie_methods()
 QUICK_LIE = ("RKMK4",)
 
 

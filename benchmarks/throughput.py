@@ -32,14 +32,7 @@ import numpy as np
 
 import so3jax as s
 
-LIE = {
-    "LieEuler": s.LieEuler,
-    "CG3": s.CG3,
-    "RKMK4": s.RKMK4,
-    "CF4": s.CF4,
-    "RKMK45": s.RKMK45,
-    "LGVI": s.LGVI,
-}
+LIE = C.lie_methods()
 AMBIENT = ["diffrax RK4", "diffrax Tsit5"]
 TSIT5_TOL = {"float64": 1e-8, "float32": 1e-5}
 

@@ -70,3 +70,24 @@ def test_throughput_quick(tmp_path):
     eq = res["equal_accuracy"]
     assert eq["rkmk4_err"] < 1e-7 and eq["tsit5_err"] < 1e-7
     assert eq["RKMK4"]["trajectories_per_s"] > 0 and eq["diffrax Tsit5"]["trajectories_per_s"] > 0
+
+
+@pytest.mark.slow
+def test_integrators_quick(tmp_path):
+    res = _run("integrators.py", tmp_path)
+    names = {r["method"] for r in res["methods"]}
+    assert {"LieEuler", "RKMK4", "CF4", "LGVI"} <= names
+    for r in res["methods"]:
+        assert r["us_per_step"] > 0 and r["batch_body_steps_per_s"] > 0 and r["order"] >= 1
+    assert res["layout"]["aos_updates_per_s"] > 0 and res["layout"]["soa_updates_per_s"] > 0
+
+
+@pytest.mark.slow
+def test_adaptive_quick(tmp_path):
+    res = _run("adaptive.py", tmp_path)
+    methods = {r["method"] for r in res["runs"]}
+    assert any(m.startswith("lie-") for m in methods) and any("Tsit5" in m for m in methods)
+    for r in res["runs"]:
+        assert r["run_s"] > 0 and r["steps"] >= r["accepted"] > 0
+        if r["method"].startswith("lie-"):
+            assert r["orthogonality"] < 1e-13  # adaptive Lie runs stay on the group
