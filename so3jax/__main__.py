@@ -16,10 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-#: Method names accepted by --method (case-insensitive) -> so3jax class name.
-METHODS = {
-    name.lower(): name for name in ("LieEuler", "RKMK4", "RKMK32", "RKMK45", "CG3", "CF4", "LGVI")
-}
+from ._integrators import METHODS, method_by_name
 
 #: Scenes accepted by --scene: (description, default duration in seconds).
 SCENES = {
@@ -67,12 +64,10 @@ def _save_every(text: str) -> int | None:
 
 
 def _method(text: str) -> str:
-    name = METHODS.get(text.lower())
-    if name is None:
-        raise argparse.ArgumentTypeError(
-            f"unknown method {text!r} (choose from {', '.join(METHODS.values())})"
-        )
-    return name
+    try:
+        return method_by_name(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _scene_name(text: str) -> str:
@@ -109,7 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=_method,
         default="RKMK4",
         metavar="NAME",
-        help=f"integrator: {', '.join(METHODS.values())} (case-insensitive; default: RKMK4)",
+        help=f"integrator: {', '.join(METHODS)} (case-insensitive; default: RKMK4)",
     )
     parser.add_argument(
         "--dt", type=_positive_float, default=1e-3, help="step size in seconds (default: 1e-3)"
@@ -301,11 +296,9 @@ def main(argv=None) -> int:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from . import _integrators
-
     dtype = jnp.float32 if args.float32 else jnp.float64
     scene = _make_scene(args.scene, dtype)
-    method = getattr(_integrators, args.method)()
+    method = METHODS[args.method]()
 
     duration = SCENES[args.scene][1] if args.duration is None else args.duration
     n_steps = max(1, round(duration / args.dt))

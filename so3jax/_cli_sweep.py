@@ -60,15 +60,12 @@ def _common(p: argparse.ArgumentParser, out: str, duration: float):
 
 
 def _method(name: str, parser):
-    import so3jax
+    from ._integrators import METHODS, method_by_name
 
-    cls = getattr(so3jax, name, None)
-    if not (isinstance(cls, type) and issubclass(cls, so3jax.AbstractLieSolver)):
-        parser.error(f"--method must name a so3jax Lie-group method (e.g. RKMK4), got {name!r}")
     try:
-        return cls()
-    except TypeError:
-        parser.error(f"--method {name} needs arguments; pick e.g. RKMK4, CG3, LieEuler")
+        return METHODS[method_by_name(name)]()
+    except ValueError as e:
+        parser.error(f"--method: {e}")
 
 
 def _n_steps(args, parser) -> int:
@@ -189,7 +186,7 @@ def sweep_main(argv=None) -> int:
         seconds=seconds,
         runs_per_second=summary["n_runs"] / seconds,
         dtype=args.dtype,
-        method=args.method,
+        method=method.name,
         devices=[str(d) for d in jax.devices()],
     )
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

@@ -35,3 +35,14 @@ from ._rkmk import (
     RKMK32 as RKMK32,
     RKMK45 as RKMK45,
 )
+
+#: The fixed-step Lie-group methods by name: what the command line accepts as --method.
+METHODS = {cls.__name__: cls for cls in (LieEuler, RKMK4, RKMK32, RKMK45, CG3, CF4, LGVI)}
+
+
+def method_by_name(text: str) -> str:
+    """The canonical name in `METHODS` of ``text`` (case-insensitive), or ``ValueError``."""
+    for name in METHODS:
+        if name.lower() == text.lower():
+            return name
+    raise ValueError(f"unknown method {text!r} (choose from {', '.join(METHODS)})")
