@@ -15,9 +15,6 @@ Writes ``results/integrators[-quick].json`` and ``.png``.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import time
 from pathlib import Path
 
@@ -155,22 +152,12 @@ def main(argv=None):
         f"(x{layout['soa_updates_per_s'] / layout['aos_updates_per_s']:.1f})"
     )
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    stem = "integrators-quick" if args.quick else "integrators"
-    meta = {
-        "backend": jax.default_backend(),
-        "device": str(jax.devices()[0].device_kind),
-        "cpu_count": os.cpu_count(),
-        "machine": platform.machine(),
-        "jax": jax.__version__,
-        "dtype": "float64",
-        "dt": dt,
-        "n_single": n_single,
-        "n_batch_steps": n_batch,
-    }
-    (out / f"{stem}.json").write_text(
-        json.dumps({"meta": meta, "methods": rows, "layout": layout}, indent=2)
+    args.out = Path(args.out)
+    args.out.mkdir(parents=True, exist_ok=True)
+    json_path, png_path = C.output_paths(args, "integrators")
+    meta = {"dtype": "float64", "dt": dt, "n_single": n_single, "n_batch_steps": n_batch}
+    C.write_json(
+        json_path, {"env": C.environment(), "meta": meta, "methods": rows, "layout": layout}
     )
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
@@ -185,8 +172,7 @@ def main(argv=None):
     for ax in axes:
         ax.tick_params(axis="x", rotation=30)
     fig.tight_layout()
-    fig.savefig(out / f"{stem}.png", dpi=120)
-    print(f"wrote {out / stem}.json and .png")
+    C.save_figure(fig, png_path)
 
 
 if __name__ == "__main__":

@@ -15,8 +15,6 @@ Writes ``results/sweep[-quick].json`` and ``.png``.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import time
 from pathlib import Path
 
@@ -28,7 +26,8 @@ import matplotlib  # noqa: E402
 import numpy as np  # noqa: E402
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+
+import _common as C  # noqa: E402
 
 import so3jax as so3  # noqa: E402
 from so3jax import _plot_sweep  # noqa: E402
@@ -83,24 +82,20 @@ def main(argv=None):
         )
     ratio = rows[1]["runs_per_second"] / rows[0]["runs_per_second"]
     print(f"float32 / float64 throughput: {ratio:.2f}x")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    name = "sweep-quick" if args.quick else "sweep"
-    record = {
-        "benchmark": "sweep",
-        "quick": args.quick,
-        "device": str(jax.devices()[0]),
-        "n_devices": jax.device_count(),
-        "platform": platform.platform(),
-        "jax": jax.__version__,
-        "float32_over_float64": ratio,
-        "rows": [{k: v for k, v in r.items() if k != "_result"} for r in rows],
-    }
-    (out / f"{name}.json").write_text(json.dumps(record, indent=2) + "\n")
-    fig = _plot_sweep.sweep_heatmaps(rows[0]["_result"])
-    fig.savefig(out / f"{name}.png", dpi=110)
-    plt.close(fig)
-    print(f"wrote {out / name}.json and .png")
+    args.out = Path(args.out)
+    args.out.mkdir(parents=True, exist_ok=True)
+    json_path, png_path = C.output_paths(args, "sweep")
+    C.write_json(
+        json_path,
+        {
+            "benchmark": "sweep",
+            "quick": args.quick,
+            "env": C.environment(),
+            "float32_over_float64": ratio,
+            "rows": [{k: v for k, v in r.items() if k != "_result"} for r in rows],
+        },
+    )
+    C.save_figure(_plot_sweep.sweep_heatmaps(rows[0]["_result"]), png_path)
 
 
 if __name__ == "__main__":

@@ -18,8 +18,6 @@ Writes ``results/tune[-quick].json`` and ``.png``.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import time
 from pathlib import Path
 
@@ -31,6 +29,7 @@ import jax.numpy as jnp  # noqa: E402
 import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
+import _common as C  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 
 import so3jax as so3  # noqa: E402
@@ -93,18 +92,12 @@ def main(argv=None):
                 f"n={n:5d} {name:24s} {r['seconds'] * 1e3:9.2f} ms ({r['time_ratio']:5.1f}x)  "
                 f"temp {r['temp_bytes'] / 2**20:8.2f} MiB  compile {r['compile_s']:.1f} s"
             )
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    name = "tune-quick" if args.quick else "tune"
-    record = {
-        "benchmark": "tune",
-        "quick": args.quick,
-        "device": str(jax.devices()[0]),
-        "platform": platform.platform(),
-        "jax": jax.__version__,
-        "rows": rows,
-    }
-    (out / f"{name}.json").write_text(json.dumps(record, indent=2) + "\n")
+    args.out = Path(args.out)
+    args.out.mkdir(parents=True, exist_ok=True)
+    json_path, png_path = C.output_paths(args, "tune")
+    C.write_json(
+        json_path, {"benchmark": "tune", "quick": args.quick, "env": C.environment(), "rows": rows}
+    )
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
     names = list(dict.fromkeys(r["variant"] for r in rows))
     for ax, key, label in (
@@ -121,9 +114,7 @@ def main(argv=None):
         ax.set_yscale("log")
         ax.legend(fontsize=8)
     fig.suptitle(f"gradient of the mean tracking cost, B = {B}, {jax.devices()[0].platform}")
-    fig.savefig(out / f"{name}.png", dpi=110)
-    plt.close(fig)
-    print(f"wrote {out / name}.json and .png")
+    C.save_figure(fig, png_path)
 
 
 if __name__ == "__main__":

@@ -11,10 +11,11 @@ import pytest
 BENCH = Path(__file__).resolve().parent.parent / "benchmarks"
 
 
-def _run(script: str, out: Path) -> dict:
+def _run(script: str, out: Path, repeats: bool = True) -> dict:
     env = {**os.environ, "MPLBACKEND": "Agg"}
+    extra = ["--repeats", "1"] if repeats else []
     proc = subprocess.run(
-        [sys.executable, str(BENCH / script), "--quick", "--repeats", "1", "--out", str(out)],
+        [sys.executable, str(BENCH / script), "--quick", *extra, "--out", str(out)],
         capture_output=True,
         text=True,
         env=env,
@@ -91,3 +92,15 @@ def test_adaptive_quick(tmp_path):
         assert r["run_s"] > 0 and r["steps"] >= r["accepted"] > 0
         if r["method"].startswith("lie-"):
             assert r["orthogonality"] < 1e-13  # adaptive Lie runs stay on the group
+
+
+@pytest.mark.slow
+def test_sweep_and_tune_quick(tmp_path):
+    sweep = _run("sweep.py", tmp_path, repeats=False)
+    assert {r["dtype"] for r in sweep["rows"]} == {"float64", "float32"}
+    assert all(r["runs_per_second"] > 0 for r in sweep["rows"])
+    tune = _run("tune.py", tmp_path, repeats=False)
+    forward = [r for r in tune["rows"] if r["variant"] == "forward pass"]
+    assert forward and all(r["time_ratio"] == 1.0 for r in forward)
+    assert all(r["seconds"] > 0 for r in tune["rows"])
+
