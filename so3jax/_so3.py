@@ -342,6 +342,30 @@ def _rmul_exp(R: Array, w: Array) -> Array:
     return R + _mm(R, _expm1(w))
 
 
+def _rmul_cay(R: Array, u: Array) -> Array:
+    """``R cay(u)`` computed as ``R + R (cay(u) - I)``, with the Cayley map
+    ``cay(u) = (I - hat(u)/2)^-1 (I + hat(u)/2) = I + 4 / (4 + |u|^2) (hat u + hat(u)^2 / 2)``.
+
+    Exactly orthogonal like ``exp`` but rational: no trigonometric functions,
+    square roots or small-angle branches. Rows of ``R hat(u)`` are ``r_i x u``.
+    """
+    uu = u[..., None, :]
+    X = _cross(R, uu)  # R hat(u)
+    Y = _cross(X, uu)  # R hat(u)^2
+    c = (4.0 / (4.0 + _dot(u, u)))[..., None, None]
+    return R + c * (X + 0.5 * Y)
+
+
+def _dcayinv(u: Array, v: Array) -> Array:
+    """Inverse right-trivialised derivative of the Cayley map.
+
+    For ``R = R0 cay(u)`` and ``R' = R hat(v)``: ``u' = v + 1/2 u x v + 1/4 (u . v) u``
+    (from ``dcay^-1_U(H) = (I - U/2) H (I + U/2)``, Iserles, Munthe-Kaas, Nørsett,
+    Zanna, Acta Numer. 9 (2000), sec. 8.3, transposed to the body frame).
+    """
+    return v + 0.5 * _cross(u, v) + 0.25 * _dot(u, v)[..., None] * u
+
+
 def exp(w: Vec3) -> Rot:
     """Exponential map so(3) -> SO(3) (Rodrigues' formula).
 

@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._so3 import _rmul_exp
+from ._so3 import _rmul_cay, _rmul_exp
 from ._types import Array, Float
 
 
@@ -41,9 +41,13 @@ class LieTangent(eqx.Module):
     dx: Float[Array, "*batch n"]
 
 
-def retract(y: LieState, u: Array, dx: Array) -> LieState:
-    """``(R exp(u), x + dx)``: move along the group and in the vector part."""
-    return LieState(_rmul_exp(y.R, u), y.x + dx)
+def retract(y: LieState, u: Array, dx: Array, coords: str = "exp") -> LieState:
+    """``(R exp(u), x + dx)``: move along the group and in the vector part.
+
+    ``coords="cayley"`` moves by the Cayley map, ``R cay(u)``, instead.
+    """
+    rmul = _rmul_cay if coords == "cayley" else _rmul_exp
+    return LieState(rmul(y.R, u), y.x + dx)
 
 
 def all_finite(tree) -> Array:

@@ -494,6 +494,34 @@ def test_private_expm1_and_rmul_exp(kind):
     assert_close(jax.jit(_so3._rmul_exp)(R, w), R @ np_exp(w), 1e-14)
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_private_cayley_map_and_its_derivative(kind):
+    """``_rmul_cay(R, u) = R (I - hat(u)/2)^-1 (I + hat(u)/2)`` (NumPy's solve), on the
+    group; ``_dcayinv(u, v)`` inverts the body-frame derivative of ``u -> R cay(u)``
+    (checked with five-point finite differences)."""
+    rng = _rng("cayley", kind)
+    u = sample_rotvecs(kind, seed=12)
+    R = sample_rotations("uniform", seed=13)
+    W, eye = np_hat(u), np.eye(3)
+    cay = np.linalg.solve(eye - W / 2, eye + W / 2)
+    got = f64(jax.jit(_so3._rmul_cay)(R, u))
+    assert_close(got, R @ cay, 1e-14)
+    assert np.abs(np.swapaxes(got, -1, -2) @ got - eye).max() <= 1e-14
+    # R(t) = R cay(u + t a): body velocity v = vee(R(0)^T R'(0)); dcay^-1_u(v) = a.
+    a = rng.normal(size=u.shape)
+
+    def cay_at(t):
+        Wt = np_hat(u + t * a)
+        return R @ np.linalg.solve(eye - Wt / 2, eye + Wt / 2)
+
+    dR = five_point(cay_at, 1e-3)
+    Rt = R @ cay
+    Vb = np.swapaxes(Rt, -1, -2) @ dR
+    v = 0.5 * np.stack([Vb[..., 2, 1] - Vb[..., 1, 2], Vb[..., 0, 2] - Vb[..., 2, 0],
+                        Vb[..., 1, 0] - Vb[..., 0, 1]], axis=-1)  # fmt: skip
+    assert_close(f64(jax.jit(_so3._dcayinv)(u, v)), a, 1e-9)
+
+
 @pytest.mark.parametrize("margin", [1e-4, 1e-2])
 def test_right_jacobian_inv_near_pi_is_dlog(margin):
     """If ``R(t) = exp(u) exp(t Omega)`` then ``d/dt log R(t) = J_r^-1(u) Omega`` at 0."""

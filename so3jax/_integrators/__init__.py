@@ -1,5 +1,7 @@
 """Lie-group integrators: one file per method family over a shared base."""
 
+import functools as _functools
+
 from ._base import (
     AbstractLieSolver as AbstractLieSolver,
     ButcherTableau as ButcherTableau,
@@ -36,8 +38,12 @@ from ._rkmk import (
     RKMK45 as RKMK45,
 )
 
-#: The fixed-step Lie-group methods by name: what the command line accepts as --method.
+#: The fixed-step Lie-group methods by name (factories): what the command line accepts
+#: as --method. The ``-cayley`` variants are RKMK in Cayley coordinates.
 METHODS = {cls.__name__: cls for cls in (LieEuler, RKMK4, RKMK32, RKMK45, CG3, CF4, LGVI)}
+METHODS.update(
+    {f"{cls.__name__}-cayley": _functools.partial(cls, coords="cayley") for cls in (RKMK4, RKMK45)}
+)
 
 
 def method_by_name(text: str) -> str:

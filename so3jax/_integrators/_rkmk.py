@@ -17,7 +17,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._so3 import _D_SERIES, _cross, _dexpinv, _dot, _polyval
+from .._so3 import _D_SERIES, _cross, _dcayinv, _dexpinv, _dot, _polyval
 from .._state import LieState, retract
 from ._base import AbstractLieSolver, ButcherTableau, lincomb
 
@@ -39,12 +39,22 @@ def _dexpinv_truncated(u, v, order: int):
 
 
 def rkmk_stages(
-    tableau: ButcherTableau, exact: bool, scene, t, y: LieState, h, f0=None, return_last=False
+    tableau: ButcherTableau,
+    exact: bool,
+    scene,
+    t,
+    y: LieState,
+    h,
+    f0=None,
+    return_last=False,
+    coords: str = "exp",
 ):
     """Run the stages; return the pulled-back velocities and vector derivatives.
 
     ``f0`` (a `LieTangent` at ``(t, y)``) replaces the first evaluation (FSAL);
     with ``return_last`` the raw `LieTangent` of the last stage is returned too.
+    ``coords="cayley"`` uses the Cayley map and its exact ``dcay^-1`` (``exact``
+    is then ignored).
     """
     order = tableau.order
     kts, dxs = [], []
@@ -57,13 +67,15 @@ def rkmk_stages(
             dx = lincomb(row, dxs, h)
             u = jnp.zeros_like(y.R[..., 0]) if u is None else u
             dx = jnp.zeros_like(y.x) if dx is None else dx
-            Yi = retract(y, u, dx)
+            Yi = retract(y, u, dx, coords)
         if i == 0 and f0 is not None:
             f = f0
         else:
             f = scene.vector_field(t + tableau.c[i] * h, Yi)
         if u is None:
             kt = f.xi
+        elif coords == "cayley":
+            kt = _dcayinv(u, f.xi)
         elif exact:
             kt = _dexpinv(u, f.xi)
         else:
@@ -86,26 +98,37 @@ class RKMK(AbstractLieSolver):
     - `tableau`: a `ButcherTableau`.
     - `dexpinv`: ``"exact"`` (the right Jacobian inverse) or ``"truncated"``
       (the series cut at the commutators the order needs: cheaper, same order).
+    - `coords`: ``"exp"`` (exponential coordinates, ``R = R0 exp(u)``) or
+      ``"cayley"`` (``R = R0 cay(u)`` with the Cayley map and its exact, rational
+      ``dcay^-1``: same order, no trigonometric functions or small-angle
+      branches, so cheaper per step; `dexpinv` is then ignored).
 
-    References: H. Munthe-Kaas, Appl. Numer. Math. 29 (1999) 115–127.
+    References: H. Munthe-Kaas, Appl. Numer. Math. 29 (1999) 115–127; A.
+    Iserles, H. Munthe-Kaas, S. Nørsett, A. Zanna, Acta Numer. 9 (2000)
+    215–365, sec. 8.3 (the Cayley map as coordinates).
     """
 
     tableau: ButcherTableau = eqx.field(static=True)
     dexpinv: str = eqx.field(static=True, default="exact")
+    coords: str = eqx.field(static=True, default="exp")
 
     def __check_init__(self):
         if self.dexpinv not in ("exact", "truncated"):
             raise ValueError(f"dexpinv must be 'exact' or 'truncated', got {self.dexpinv!r}")
+        if self.coords not in ("exp", "cayley"):
+            raise ValueError(f"coords must be 'exp' or 'cayley', got {self.coords!r}")
 
     @property
     def order(self) -> int:
         return self.tableau.order
 
     def step(self, scene, t, y, h):
-        kts, dxs = rkmk_stages(self.tableau, self.dexpinv == "exact", scene, t, y, h)
+        kts, dxs = rkmk_stages(
+            self.tableau, self.dexpinv == "exact", scene, t, y, h, coords=self.coords
+        )
         u = lincomb(self.tableau.b, kts, h)
         dx = lincomb(self.tableau.b, dxs, h)
-        return retract(y, u, dx), jnp.array(False)
+        return retract(y, u, dx, self.coords), jnp.array(False)
 
 
 F = lambda *xs: tuple(xs)  # noqa: E731  (short rows for the tableaus below)
@@ -170,9 +193,12 @@ class RKMK45(RKMK):
         return self.tableau.order_low if self.embedded else self.tableau.order
 
     def step(self, scene, t, y, h):
-        kts, dxs = rkmk_stages(self.tableau, self.dexpinv == "exact", scene, t, y, h)
+        kts, dxs = rkmk_stages(
+            self.tableau, self.dexpinv == "exact", scene, t, y, h, coords=self.coords
+        )
         b = self.tableau.b_low if self.embedded else self.tableau.b
-        return retract(y, lincomb(b, kts, h), lincomb(b, dxs, h)), jnp.array(False)
+        u, dx = lincomb(b, kts, h), lincomb(b, dxs, h)
+        return retract(y, u, dx, self.coords), jnp.array(False)
 
 
 class RKMK32(RKMK45):
