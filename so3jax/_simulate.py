@@ -135,6 +135,7 @@ def simulate(
     saveat: int | Array | None = None,
     max_steps: int = 4096,
     adjoint=None,
+    scalarize: bool = False,
 ) -> Trajectory:
     """Integrate a scene with a fixed-step Lie-group method.
 
@@ -151,6 +152,12 @@ def simulate(
     - `n_steps`: number of steps (>= 1), a multiple of ``save_every``.
     - `save_every`: keep one state every this many steps.
     - `t0`: initial time.
+    - `scalarize`: run each step as a program over scalar components
+      (`so3jax._scalarize`): the same arithmetic, but under `vmap` every
+      component is a contiguous batch array (structure of arrays). On CPU this
+      makes batched runs (``vmap`` over thousands of trajectories) 4–5x faster,
+      and a single trajectory about 3x slower; compile time grows (a few
+      seconds). Fixed steps only.
 
     **Returns:** a `Trajectory` with ``n_steps // save_every + 1`` points and a
     `Status` saying whether the run stayed finite and where it stopped if not.
@@ -163,6 +170,8 @@ def simulate(
     if t1 is not None or rtol is not None or atol is not None:
         from ._adaptive import simulate_adaptive
 
+        if scalarize:
+            raise ValueError("scalarize=True is for fixed steps (dt, n_steps)")
         if n_steps is not None or save_every != 1:
             raise ValueError(
                 "adaptive mode (t1, rtol, atol) takes no n_steps or save_every: use saveat"
@@ -198,7 +207,7 @@ def simulate(
     dtype = scene.y0.R.dtype
     dt = _check_dt(dt, dtype)
     t0 = jnp.asarray(t0, dtype=dtype)
-    return _simulate(scene, method, dt, t0, n_steps // save_every, save_every)
+    return _simulate(scene, method, dt, t0, n_steps // save_every, save_every, bool(scalarize))
 
 
 def guarded_step(scene, method, dt, t0):
@@ -225,15 +234,28 @@ def guarded_step(scene, method, dt, t0):
     return one_step
 
 
+def scan_steps(one_step, carry, length: int, scalarize: bool):
+    """``lax.scan`` of a carry-to-carry step, optionally over scalar components."""
+    if not scalarize:
+        return jax.lax.scan(one_step, carry, None, length=length)[0]
+    from ._scalarize import scalar_body
+
+    split, body, join = scalar_body(lambda c: one_step(c, None)[0], carry)
+    flat, _ = jax.lax.scan(lambda f, _: (body(f), None), split(carry), None, length=length)
+    return join(flat)
+
+
 @eqx.filter_jit
-def _simulate(scene, method, dt, t0, n_save: int, save_every: int) -> Trajectory:
+def _simulate(
+    scene, method, dt, t0, n_save: int, save_every: int, scalarize: bool = False
+) -> Trajectory:
     y0 = scene.y0
     nan_obs = jax.tree.map(lambda a: jnp.full_like(a, jnp.nan), scene.observe(t0, y0))
 
     one_step = guarded_step(scene, method, dt, t0)
 
     def save_block(carry, _):
-        carry, _ = jax.lax.scan(one_step, carry, None, length=save_every)
+        carry = scan_steps(one_step, carry, save_every, scalarize)
         y, k, code, _ = carry
         t = t0 + k * dt
         obs = scene.observe(t, y)

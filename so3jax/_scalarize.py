@@ -1,0 +1,437 @@
+"""Scalarization: run a small-array function as a program over scalar components.
+
+A step of an attitude integrator works on dozens of 3-vectors and 3x3 matrices.
+XLA on CPU turns such code into a hundred or more separate kernels per step
+(every reduction, `stack` and shape change ends a fusion), and each kernel
+launch costs about 50–100 ns, far more than its arithmetic. Under `vmap` the
+batch axis goes in front of every small array, so the same kernels then also
+stride through memory (an array-of-structures layout).
+
+`scalarize` rewrites the function instead: it traces it once to a jaxpr at
+the given shapes and evaluates that jaxpr with every array replaced by a
+NumPy *object* array of its scalar components (each a JAX scalar, or a
+``(B,)`` array under `vmap`). Shape operations (`reshape`, `slice`,
+`broadcast_in_dim`, `concatenate`, `transpose`, ...) only rearrange
+components and emit nothing; elementwise operations apply per component;
+`dot_general` and reductions unroll into sums. What is left is one flat
+elementwise program over scalars, which XLA fuses into a few kernels; under
+`vmap` each component becomes a contiguous ``(B,)`` array: a structure-of-arrays
+layout with no transposes. The result is the same function (the same
+primitives, in the same order of operations per component), and it stays
+differentiable (it is made of JAX operations).
+
+Only the primitives a vector field or a step needs are supported (elementwise
+arithmetic and transcendental functions, comparisons and `select_n`, shape
+operations, `dot_general`, sums/max/min reductions, nested `jit`, custom
+JVP/VJP calls and `cond`); anything else (loops, dynamic indexing, sorting)
+raises `NotImplementedError`, and callers fall back to the plain function.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.extend import core as jex_core
+
+__all__ = ["scalarize", "scalar_body", "to_components", "from_components", "ScalarizeError"]
+
+
+class ScalarizeError(NotImplementedError):
+    """A primitive the scalarizing interpreter does not handle."""
+
+
+_ELEMENTWISE = frozenset(
+    """
+    abs acos acosh add and asin asinh atan atan2 atanh cbrt ceil clamp convert_element_type
+    copy copy_p cos cosh div eq erf erf_inv erfc exp exp2 expm1 floor ge gt imag integer_pow
+    is_finite le lgamma digamma log log1p logistic lt max min mul ne neg nextafter not or pow
+    real reduce_precision rem round rsqrt select_n sign sin sinh sqrt square sub tan tanh xor
+    stop_gradient square
+    """.split()
+)
+
+
+def _obj(shape) -> np.ndarray:
+    return np.empty(shape, dtype=object)
+
+
+def to_components(x) -> np.ndarray:
+    """An array of shape ``S`` as an object array of shape ``S`` of JAX scalars."""
+    x = jnp.asarray(x)
+    out = _obj(x.shape)
+    for idx in np.ndindex(*x.shape):
+        out[idx] = x[idx]
+    return out
+
+
+def from_components(c: np.ndarray, batch_shape=()) -> jax.Array:
+    """Stack an object array of components (each of ``batch_shape``) into one array."""
+    flat = [jnp.broadcast_to(v, batch_shape) for v in c.reshape(-1)]
+    if not flat:
+        raise ValueError("empty component array")
+    return jnp.stack(flat, axis=-1).reshape(tuple(batch_shape) + c.shape)
+
+
+def _const(value, aval=None) -> np.ndarray:
+    """A literal or constant as components.
+
+    Concrete values become NumPy scalars, which `_elementwise` can fold at trace
+    time (multiplications by exact zeros and ones from `eye`, `hat`, ...);
+    traced values (closed over from an outer trace) stay JAX scalars.
+    """
+    if isinstance(value, jax.core.Tracer):
+        arr = value
+        conv = lambda v: v
+    else:
+        arr = np.asarray(value)
+        dtype = aval.dtype if aval is not None else arr.dtype
+        conv = lambda v: np.asarray(v, dtype=dtype)[()]
+    out = _obj(np.shape(arr))
+    for idx in np.ndindex(*np.shape(arr)):
+        out[idx] = conv(arr[idx])
+    return out
+
+
+def _cast(dtype):
+    return lambda x: np.asarray(x).astype(dtype)[()]
+
+
+_FOLDABLE = {
+    "eq": lambda a, b: np.equal(a, b)[()],
+    "ne": lambda a, b: np.not_equal(a, b)[()],
+    "lt": lambda a, b: np.less(a, b)[()],
+    "le": lambda a, b: np.less_equal(a, b)[()],
+    "gt": lambda a, b: np.greater(a, b)[()],
+    "ge": lambda a, b: np.greater_equal(a, b)[()],
+    "and": lambda a, b: np.logical_and(a, b)[()] if a.dtype == bool else np.bitwise_and(a, b)[()],
+    "or": lambda a, b: np.logical_or(a, b)[()] if a.dtype == bool else np.bitwise_or(a, b)[()],
+    "not": lambda a: np.logical_not(a)[()] if a.dtype == bool else np.invert(a)[()],
+    "neg": lambda a: np.negative(a)[()],
+    "add": lambda a, b: np.add(a, b)[()],
+    "sub": lambda a, b: np.subtract(a, b)[()],
+    "mul": lambda a, b: np.multiply(a, b)[()],
+    "max": lambda a, b: np.maximum(a, b)[()],
+    "min": lambda a, b: np.minimum(a, b)[()],
+}
+
+
+def _is_const(x) -> bool:
+    return isinstance(x, (np.generic, np.ndarray))
+
+
+def _fold(name, xs, params):
+    """Trace-time simplification when some operands are NumPy constants, or None."""
+    consts = [_is_const(x) for x in xs]
+    if not any(consts):
+        return None
+    if all(consts) and name in _FOLDABLE:
+        return _FOLDABLE[name](*xs)
+    if name == "mul":
+        a, b = xs
+        for c, other in ((a, b), (b, a)):
+            if _is_const(c) and not _is_const(other):
+                if c == 0:  # x * 0 -> 0 (drops NaN propagation through exact zeros)
+                    return np.zeros((), dtype=c.dtype)[()]
+                if c == 1:
+                    return other
+    elif name == "add":
+        a, b = xs
+        if _is_const(a) and not _is_const(b) and a == 0:
+            return b
+        if _is_const(b) and not _is_const(a) and b == 0:
+            return a
+    elif name == "sub":
+        a, b = xs
+        if _is_const(b) and not _is_const(a) and b == 0:
+            return a
+        if _is_const(a) and not _is_const(b) and a == 0:
+            return -b
+    elif name == "convert_element_type" and consts[0]:
+        return _cast(params["new_dtype"])(xs[0])
+    elif name == "neg" and consts[0]:
+        return np.negative(xs[0])[()]
+    elif name == "select_n" and consts[0]:
+        return xs[1 + int(xs[0])]
+    return None
+
+
+def _bshape(vals):
+    return jnp.broadcast_shapes(*(jnp.shape(v) for v in vals))
+
+
+def _elementwise(prim, params, args):
+    """Apply ``prim`` per component (NumPy broadcasting over the component arrays)."""
+
+    name = prim.name
+
+    def one(*xs):
+        folded = _fold(name, xs, params)
+        if folded is not None:
+            return folded
+        shape = _bshape(xs)
+        xs = [jnp.broadcast_to(x, shape) for x in xs]
+        return prim.bind(*xs, **params)
+
+    if prim.multiple_results:  # pragma: no cover - no such elementwise primitive here
+        raise ScalarizeError(prim.name)
+    return np.frompyfunc(one, len(args), 1)(*args)
+
+
+def _sum(vals):
+    vals = list(vals)
+    out = vals[0]
+    for v in vals[1:]:
+        out = out + v
+    return out
+
+
+def _reduce(x: np.ndarray, axes, combine) -> np.ndarray:
+    axes = tuple(sorted(axes))
+    keep = [d for d in range(x.ndim) if d not in axes]
+    xt = x.transpose(keep + list(axes))
+    out_shape = tuple(x.shape[d] for d in keep)
+    xt = xt.reshape(out_shape + (-1,))
+    out = _obj(out_shape)
+    for idx in np.ndindex(*out_shape):
+        out[idx] = functools.reduce(combine, list(xt[idx]))
+    return out
+
+
+def _dot_general(lhs, rhs, dimension_numbers, **_):
+    (lc, rc), (lb, rb) = dimension_numbers
+    lf = [d for d in range(lhs.ndim) if d not in lc and d not in lb]
+    rf = [d for d in range(rhs.ndim) if d not in rc and d not in rb]
+    L = lhs.transpose(list(lb) + lf + list(lc))
+    Rr = rhs.transpose(list(rb) + rf + list(rc))
+    bshape = tuple(lhs.shape[d] for d in lb)
+    lfs = tuple(lhs.shape[d] for d in lf)
+    rfs = tuple(rhs.shape[d] for d in rf)
+    nc = int(np.prod([lhs.shape[d] for d in lc], dtype=int))
+    L = L.reshape(bshape + lfs + (nc,))
+    Rr = Rr.reshape(bshape + rfs + (nc,))
+    out = _obj(bshape + lfs + rfs)
+    for b in np.ndindex(*bshape):
+        for i in np.ndindex(*lfs):
+            for j in np.ndindex(*rfs):
+                lv, rv = L[b + i], Rr[b + j]
+                if nc == 0:
+                    raise ScalarizeError("dot_general with an empty contraction")
+                out[b + i + j] = _sum(lv[k] * rv[k] for k in range(nc))
+    return out
+
+
+def _pad(x, padding_value, padding_config):
+    pv = padding_value[()]
+    for lo, hi, _ in padding_config:
+        if lo < 0 or hi < 0:
+            raise ScalarizeError("pad with negative padding")
+    shape = tuple(
+        lo + hi + n + max(n - 1, 0) * interior
+        for n, (lo, hi, interior) in zip(x.shape, padding_config, strict=True)
+    )
+    out = _obj(shape)
+    out[...] = pv
+    idx = tuple(
+        slice(lo, lo + n + max(n - 1, 0) * interior, interior + 1)
+        for n, (lo, hi, interior) in zip(x.shape, padding_config, strict=True)
+    )
+    out[idx] = x
+    return out
+
+
+def _iota(dtype, shape, dimension, **_):
+    out = _obj(shape)
+    for idx in np.ndindex(*shape):
+        out[idx] = np.asarray(idx[dimension], dtype=dtype)[()]
+    return out
+
+
+def _select_branches(index, results_per_branch):
+    """Elementwise choice among branch results (every branch was evaluated)."""
+    outs = []
+    for parts in zip(*results_per_branch, strict=True):
+        sel = lambda i, *xs: jax.lax.select_n(
+            jnp.broadcast_to(i, _bshape((i,) + xs)),
+            *[jnp.broadcast_to(x, _bshape((i,) + xs)) for x in xs],
+        )
+        outs.append(np.frompyfunc(sel, len(parts) + 1, 1)(index, *parts))
+    return outs
+
+
+def _eval(jaxpr, consts, args):
+    env = {}
+
+    def read(v):
+        if isinstance(v, jex_core.Literal):
+            return _const(v.val, v.aval)
+        return env[v]
+
+    for v, c in zip(jaxpr.constvars, consts, strict=True):
+        env[v] = c
+    for v, a in zip(jaxpr.invars, args, strict=True):
+        env[v] = a
+    for eqn in jaxpr.eqns:
+        ins = [read(v) for v in eqn.invars]
+        outs = _apply(eqn, ins)
+        if not eqn.primitive.multiple_results:
+            outs = [outs]
+        for v, o in zip(eqn.outvars, outs, strict=True):
+            if not isinstance(o, np.ndarray):  # a 0-d result of np.frompyfunc
+                arr = _obj(())
+                arr[()] = o
+                o = arr
+            env[v] = o
+    return [read(v) for v in jaxpr.outvars]
+
+
+def _closed(cj, args):
+    return _eval(cj.jaxpr, [_const(c) for c in cj.consts], args)
+
+
+def _apply(eqn, ins):
+    name = eqn.primitive.name
+    p = eqn.params
+    if name in _ELEMENTWISE:
+        return _elementwise(eqn.primitive, p, ins)
+    x = ins[0] if ins else None
+    if name == "broadcast_in_dim":
+        shape, dims = p["shape"], p["broadcast_dimensions"]
+        expanded = [1] * len(shape)
+        for src, dst in enumerate(dims):
+            expanded[dst] = x.shape[src]
+        return np.broadcast_to(x.reshape(expanded), shape)
+    if name == "reshape":
+        return x.reshape(p["new_sizes"])
+    if name == "squeeze":
+        return x.reshape(tuple(n for d, n in enumerate(x.shape) if d not in p["dimensions"]))
+    if name == "expand_dims":
+        return np.expand_dims(x, p["dimensions"])
+    if name == "transpose":
+        return x.transpose(p["permutation"])
+    if name == "rev":
+        return np.flip(x, p["dimensions"])
+    if name == "slice":
+        strides = p["strides"] or (1,) * x.ndim
+        idx = tuple(
+            slice(s, e, st)
+            for s, e, st in zip(p["start_indices"], p["limit_indices"], strides, strict=True)
+        )
+        return x[idx]
+    if name == "concatenate":
+        return np.concatenate(ins, axis=p["dimension"])
+    if name == "stack":
+        return np.stack(ins, axis=p["axis"])
+    if name == "unstack":
+        return [np.take(x, i, axis=p["axis"]) for i in range(x.shape[p["axis"]])]
+    if name == "split":
+        cuts = np.cumsum(p["sizes"])[:-1]
+        return list(np.split(x, cuts, axis=p["axis"]))
+    if name == "pad":
+        return _pad(x, ins[1], p["padding_config"])
+    if name == "iota":
+        return _iota(**p)
+    if name == "dot_general":
+        return _dot_general(ins[0], ins[1], p["dimension_numbers"])
+    if name == "reduce_sum":
+        return _reduce(x, p["axes"], lambda a, b: a + b)
+    if name == "reduce_max":
+        return _reduce(x, p["axes"], jnp.maximum)
+    if name == "reduce_min":
+        return _reduce(x, p["axes"], jnp.minimum)
+    if name == "reduce_and":
+        return _reduce(x, p["axes"], jnp.logical_and)
+    if name == "reduce_or":
+        return _reduce(x, p["axes"], jnp.logical_or)
+    if name == "reduce_prod":
+        return _reduce(x, p["axes"], lambda a, b: a * b)
+    if name in ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint"):
+        cj = p.get("jaxpr") or p.get("call_jaxpr")
+        if isinstance(cj, jex_core.ClosedJaxpr):
+            return _closed(cj, ins)
+        return _eval(cj, [], ins)
+    if name == "custom_jvp_call":
+        return _closed(p["call_jaxpr"], ins)
+    if name == "custom_vjp_call":
+        cj = p.get("call_jaxpr") or p.get("fun_jaxpr")
+        return _closed(cj, ins)
+    if name == "cond":
+        index, ops = ins[0], ins[1:]
+        results = [_closed(br, ops) for br in p["branches"]]
+        if len(results) == 1:
+            return results[0]
+        return _select_branches(index, results)
+    raise ScalarizeError(f"scalarize: primitive {name!r} is not supported")
+
+
+def scalarize(fn: Callable, *example_args) -> Callable:
+    """``fn`` as a function over component arrays.
+
+    Traces ``fn(*example_args)`` (pytrees of arrays, single-trajectory shapes)
+    once, and returns ``run(*component_args)`` taking and returning the same
+    pytrees with every leaf an object array of components (`to_components`).
+    """
+    closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*example_args)
+    consts = [_const(c) for c in closed.consts]
+    in_tree = jax.tree.structure(example_args)
+    out_tree = jax.tree.structure(out_shape)
+
+    def run(*component_args):
+        leaves = in_tree.flatten_up_to(component_args)
+        outs = _eval(closed.jaxpr, consts, leaves)
+        return jax.tree.unflatten(out_tree, outs)
+
+    return run
+
+
+def _flat_components(tree) -> list:
+    """Every scalar component of every leaf of ``tree``, in order."""
+    return [leaf[idx] for leaf in jax.tree.leaves(tree) for idx in np.ndindex(*jnp.shape(leaf))]
+
+
+def scalar_body(step: Callable, example):
+    """A carry-to-carry function as a scan body over flat scalar components.
+
+    Returns ``(split, body, join)``: ``split(carry)`` is the flat list of scalar
+    components of a carry shaped like ``example``, ``body(flat)`` applies
+    ``step`` to them (scalarized), and ``join(flat)`` rebuilds the carry. Run
+    ``lax.scan`` over ``body`` and ``split``/``join`` only at the ends, so the
+    loop carries no arrays to slice and stack each step.
+    """
+    run = scalarize(step, example)
+    leaves, tree = jax.tree.flatten(example)
+    shapes = [jnp.shape(leaf) for leaf in leaves]
+    dtypes = [jnp.result_type(leaf) for leaf in leaves]
+    sizes = [int(np.prod(sh, dtype=int)) for sh in shapes]
+
+    def parts(flat):
+        out, i = [], 0
+        for sh, n in zip(shapes, sizes, strict=True):
+            a = _obj(n)
+            for k in range(n):
+                a[k] = flat[i + k]
+            out.append(a.reshape(sh))
+            i += n
+        return out
+
+    def body(flat):
+        out = run(jax.tree.unflatten(tree, parts(flat)))
+        comps = [v for leaf in jax.tree.leaves(out) for v in leaf.reshape(-1)]
+        # Constants folded at trace time come back as NumPy scalars: give them the
+        # carry's dtypes (a scan carry must keep its types).
+        return [jnp.asarray(v, dtype=a.dtype) for v, a in zip(comps, flat, strict=True)]
+
+    def join(flat):
+        arrays = []
+        for part, dt in zip(parts(flat), dtypes, strict=True):
+            if part.size == 0:
+                arrays.append(jnp.zeros(part.shape, dt))
+                continue
+            batch = _bshape(list(part.reshape(-1)))
+            arrays.append(from_components(part, batch).astype(dt))
+        return jax.tree.unflatten(tree, arrays)
+
+    return _flat_components, body, join
