@@ -6,10 +6,13 @@
    float32: body-steps per second (batch x steps / wall time; for adaptive
    Tsit5, the accepted steps), compile time and XLA's memory estimate
    (arguments + outputs + temporaries). Batch 1 to 65536 (``--quick``: 1 to 256).
-2. *Equal accuracy*: 4096 seed trajectories (``--quick``: 64) of 10 s, RKMK4 at
-   the step count and diffrax Tsit5 at the tolerance that each reach final
+2. *Equal accuracy*: 4096 seed trajectories (``--quick``: 64) of 10 s, each
+   method at the step count (diffrax Tsit5: the tolerance) that reaches final
    attitude error 1e-8 on the seed initial condition (calibrated in the same
-   run): trajectories per second and their ratio.
+   run): trajectories per second and the ratio to vmapped diffrax Tsit5. The
+   Lie-group methods run as they are (RKMK4) and scalarized
+   (``simulate(..., scalarize=True)``: structure of arrays under vmap), in
+   exponential and Cayley coordinates.
 
 The JSON records `jax.default_backend()` and the device kind: run it on a GPU
 for the GPU column.
@@ -51,12 +54,25 @@ def with_R0(scene, R0):
     return eqx.tree_at(lambda sc: sc.y0.R, scene, scene.y0.R.at[0].set(R0))
 
 
+#: Equal-accuracy variants: label -> (method factory, scalarize).
+VARIANTS = {
+    "RKMK4": (s.RKMK4, False),
+    "RKMK4 scalarized": (s.RKMK4, True),
+    "RKMK4-cayley scalarized": (lambda: s.RKMK4(coords="cayley"), True),
+    "RKMK45-cayley scalarized": (lambda: s.RKMK45(coords="cayley"), True),
+}
+
+
 def runner(label, scene, dt, n_steps, t1=None, tol=None):
     """``f(R0s) -> (R_final, Omega_final, steps)``, vmapped over initial attitudes."""
 
     def one(R0):
         sc = with_R0(scene, R0)
-        if label in LIE:
+        if label in VARIANTS:
+            make, scal = VARIANTS[label]
+            tr = s.simulate(sc, make(), dt, n_steps, save_every=n_steps, scalarize=scal)
+            steps = jnp.asarray(n_steps)
+        elif label in LIE:
             tr = s.simulate(sc, LIE[label](), dt, n_steps, save_every=n_steps)
             steps = jnp.asarray(n_steps)
         elif label == "diffrax RK4":
@@ -105,8 +121,18 @@ def sweep(args):
     return {"n_steps": n_steps, "dt": dt, "batches": batches, "methods": labels, "rows": rows}
 
 
+def _n_star(scene, ref, T, make, ns):
+    """The step count (rounded up to 25) where ``make()`` reaches attitude error 1e-8."""
+    errs = []
+    for n in ns:
+        R = s.simulate(scene, make(), T / n, n, save_every=n).R[-1]
+        errs.append(float(s.geodesic_distance(R, ref)))
+    n_star = C.interp_loglog(errs, ns, 1e-8)
+    return ns[-1] if not math.isfinite(n_star) else int(math.ceil(n_star / 25) * 25)
+
+
 def calibrate(scene, quick):
-    """RKMK4 step count and Tsit5 tolerance reaching final attitude error 1e-8 (10 s).
+    """Step counts and the Tsit5 tolerance reaching final attitude error 1e-8 (10 s).
 
     ``--quick`` skips the search (fixed settings; their errors are still measured).
     """
@@ -114,14 +140,16 @@ def calibrate(scene, quick):
     n_ref = 10000 if quick else 40000
     ref = s.simulate(scene, s.RKMK45(), T / n_ref, n_ref, save_every=n_ref).R[-1]
     if quick:
-        return _check_settings(scene, ref, T, 1000, 1e-9)
-    ns = [500, 1000, 2000] if quick else [500, 700, 1000, 1400, 2000, 2800]
-    errs = []
-    for n in ns:
-        R = s.simulate(scene, s.RKMK4(), T / n, n, save_every=n).R[-1]
-        errs.append(float(s.geodesic_distance(R, ref)))
-    n_star = C.interp_loglog(errs, ns, 1e-8)
-    n_star = ns[-1] if not math.isfinite(n_star) else int(math.ceil(n_star / 50) * 50)
+        return _check_settings(scene, ref, T, {"RKMK4": 1000, "RKMK45-cayley": 400}, 1e-9)
+    n_star = {
+        "RKMK4": _n_star(scene, ref, T, s.RKMK4, [500, 700, 1000, 1400]),
+        "RKMK4-cayley": _n_star(
+            scene, ref, T, lambda: s.RKMK4(coords="cayley"), [500, 700, 1000, 1400]
+        ),
+        "RKMK45-cayley": _n_star(
+            scene, ref, T, lambda: s.RKMK45(coords="cayley"), [200, 250, 300, 400, 500]
+        ),
+    }
     tols = [1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11]
     terrs = []
     for tol in tols:
@@ -134,12 +162,19 @@ def calibrate(scene, quick):
 
 def _check_settings(scene, ref, T, n_star, tol_star):
     """Final attitude errors of the chosen settings on the seed initial condition."""
-    R = s.simulate(scene, s.RKMK4(), T / n_star, n_star, save_every=n_star).R[-1]
+    n_star.setdefault("RKMK4-cayley", n_star["RKMK4"])
+    errs = {}
+    for name, n in n_star.items():
+        make = VARIANTS[name.replace("-cayley", "-cayley scalarized")][0]
+        R = s.simulate(scene, make(), T / n, n, save_every=n).R[-1]
+        errs[name] = float(s.geodesic_distance(R, ref))
     tr = s.simulate_ambient(scene, "tsit5", T, rtol=tol_star, atol=tol_star, n_save=2)
     return {
         "T": T,
-        "rkmk4_n_steps": n_star,
-        "rkmk4_err": float(s.geodesic_distance(R, ref)),
+        "rkmk4_n_steps": n_star["RKMK4"],
+        "rkmk4_err": errs["RKMK4"],
+        "n_steps": n_star,
+        "errors": errs,
         "tsit5_tol": tol_star,
         "tsit5_err": float(s.geodesic_distance(s.project(tr.R[-1]), ref)),
     }
@@ -149,13 +184,17 @@ def equal_accuracy(args):
     scene = base_scene(jnp.float64)
     cal = calibrate(scene, args.quick)
     B = 64 if args.quick else 4096
-    T, n = cal["T"], cal["rkmk4_n_steps"]
+    T = cal["T"]
     R0s = s.random_rotation(jax.random.key(1), (B,), dtype=jnp.float64)
     out = {"batch": B, **cal}
-    for label, fn in [
-        ("RKMK4", runner("RKMK4", scene, T / n, n)),
-        ("diffrax Tsit5", runner("diffrax Tsit5", scene, None, 0, t1=T, tol=cal["tsit5_tol"])),
-    ]:
+    runs = []
+    for label in VARIANTS:
+        n = cal["n_steps"][label.split(" ")[0]]
+        runs.append((label, runner(label, scene, T / n, n)))
+    runs.append(
+        ("diffrax Tsit5", runner("diffrax Tsit5", scene, None, 0, t1=T, tol=cal["tsit5_tol"]))
+    )
+    for label, fn in C.progress(runs, "equal accuracy"):
         r = C.compile_and_time(fn, R0s, repeats=max(1, min(args.repeats, 3)))
         steps = float(np.sum(np.asarray(r["out"][2])))
         out[label] = {
@@ -167,6 +206,11 @@ def equal_accuracy(args):
             "memory_mb": None if r["memory_bytes"] is None else r["memory_bytes"] / 2**20,
         }
     out["speedup_rkmk4_over_tsit5"] = out["diffrax Tsit5"]["run_s"] / out["RKMK4"]["run_s"]
+    out["speedup_over_tsit5"] = {
+        k: out["diffrax Tsit5"]["run_s"] / out[k]["run_s"] for k in VARIANTS
+    }
+    best = max(VARIANTS, key=lambda k: out["speedup_over_tsit5"][k])
+    out["best"] = {"method": best, "speedup_over_tsit5": out["speedup_over_tsit5"][best]}
     return out
 
 
@@ -192,13 +236,19 @@ def plot(res, path):
         ax.legend(fontsize=7)
     eq = res["equal_accuracy"]
     ax = axes[2]
-    labels = ["RKMK4", "diffrax Tsit5"]
-    ax.bar(labels, [eq[k]["trajectories_per_s"] for k in labels], color=["C0", "C1"])
-    ax.set_yscale("log")
-    ax.set_ylabel("trajectories / s")
+    labels = [*VARIANTS, "diffrax Tsit5"]
+    ax.barh(
+        [k.replace(" scalarized", "\nscalarized") for k in labels],
+        [eq[k]["trajectories_per_s"] for k in labels],
+        color=[f"C{i}" for i in range(len(labels))],
+    )
+    ax.set_xscale("log")
+    ax.set_xlabel("trajectories / s")
+    ax.tick_params(axis="y", labelsize=7)
     ax.set_title(
-        f"{eq['batch']} x seed {eq['T']:g} s at attitude error 1e-8: "
-        f"{eq['speedup_rkmk4_over_tsit5']:.1f}x"
+        f"{eq['batch']} x seed {eq['T']:g} s at attitude error 1e-8\n"
+        f"best: {eq['best']['method']}, {eq['best']['speedup_over_tsit5']:.1f}x Tsit5",
+        fontsize=9,
     )
     fig.tight_layout()
     C.save_figure(fig, path)
@@ -208,10 +258,22 @@ def main():
     def extra(p):
         p.add_argument("--methods", nargs="+", help=f"subset of {list(LIE) + AMBIENT}")
         p.add_argument("--batches", nargs="+", type=int, help="batch sizes of the sweep")
+        p.add_argument(
+            "--equal-only",
+            action="store_true",
+            help="rerun only the equal-accuracy part; keep the sweep of the existing JSON",
+        )
 
     args = C.parse_args(__doc__.splitlines()[0], extra)
     json_path, png_path = C.output_paths(args, "throughput")
-    res = {"sweep": sweep(args), "equal_accuracy": equal_accuracy(args)}
+    if args.equal_only:
+        import json
+
+        old = json.loads(open(json_path).read())
+        sw = {**old["sweep"], "measured": old.get("env", {}).get("date")}
+    else:
+        sw = sweep(args)
+    res = {"sweep": sw, "equal_accuracy": equal_accuracy(args)}
     res["env"] = C.environment()
     sw = res["sweep"]
     for dname in ["float64", "float32"]:
@@ -227,14 +289,24 @@ def main():
         C.print_table(rows, cols, f"body-steps/s, {dname}, {sw['n_steps']} steps of {sw['dt']} s")
     eq = res["equal_accuracy"]
     title = (
-        f"equal accuracy (1e-8): {eq['batch']} seed trajectories; "
-        f"RKMK4 n = {eq['rkmk4_n_steps']} (err {eq['rkmk4_err']:.2g}), "
-        f"Tsit5 tol = {eq['tsit5_tol']:.2g} (err {eq['tsit5_err']:.2g}); "
-        f"RKMK4 speed-up {eq['speedup_rkmk4_over_tsit5']:.1f}x"
+        f"equal accuracy (1e-8): {eq['batch']} seed trajectories; steps {eq['n_steps']}, "
+        f"errors {', '.join(f'{k} {v:.2g}' for k, v in eq['errors'].items())}; "
+        f"Tsit5 tol = {eq['tsit5_tol']:.2g} (err {eq['tsit5_err']:.2g})"
     )
     C.print_table(
-        [{"method": k, **eq[k]} for k in ["RKMK4", "diffrax Tsit5"]],
-        ["method", "run_s", "trajectories_per_s", "body_steps_per_s", "mean_steps", "compile_s"],
+        [
+            {"method": k, **eq[k], "x_tsit5": eq["speedup_over_tsit5"].get(k, 1.0)}
+            for k in [*VARIANTS, "diffrax Tsit5"]
+        ],
+        [
+            "method",
+            "run_s",
+            "trajectories_per_s",
+            "body_steps_per_s",
+            "mean_steps",
+            "compile_s",
+            "x_tsit5",
+        ],
         title,
     )
     C.write_json(json_path, res)
