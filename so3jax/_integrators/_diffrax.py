@@ -25,6 +25,7 @@ L. F. Shampine, "Some practical Runge–Kutta formulas", Math. Comp. 46 (1986)
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from fractions import Fraction
 from typing import Any, ClassVar
@@ -36,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._scene import Scene
-from .._so3 import _dexpinv, _hat, _log_from_quat, _mm, _mT, _to_quat
+from .._so3 import _dcayinv, _dexpinv, _hat, _log_from_quat, _mm, _mT, _to_quat
 from .._state import LieState, LieTangent, retract
 from .._types import Array
 from ._base import AbstractLieSolver, ButcherTableau, lincomb
@@ -169,6 +170,8 @@ class LieInterpolation(diffrax.AbstractLocalInterpolation):
     - `R0`: rotations at ``t0``, shape `(k, 3, 3)`.
     - `cu`: coefficients of ``p_u``, shape `(m, k, 3)` (no constant term).
     - `cx`: coefficients of ``p_x``, shape `(m + 1, n)`.
+    - `coords`: ``"exp"`` (``R0 exp(p_u)``) or ``"cayley"`` (``R0 cay(p_u)``: the
+      coordinates of an RKMK method in Cayley coordinates).
     """
 
     t0: Any
@@ -176,6 +179,7 @@ class LieInterpolation(diffrax.AbstractLocalInterpolation):
     R0: Array
     cu: Array
     cx: Array
+    coords: str = eqx.field(static=True, default="exp")
 
     def _at(self, t) -> LieState:
         theta = (t - self.t0) / (self.t1 - self.t0)
@@ -186,7 +190,7 @@ class LieInterpolation(diffrax.AbstractLocalInterpolation):
         x = jnp.zeros_like(self.cx[0])
         for c in self.cx:
             x = x * theta + c
-        return retract(LieState(self.R0, jnp.zeros_like(x)), u, x)
+        return retract(LieState(self.R0, jnp.zeros_like(x)), u, x, self.coords)
 
     def evaluate(self, t0, t1=None, left: bool = True):
         del left
@@ -358,7 +362,11 @@ class DiffraxLieAdaptiveSolver(diffrax.AbstractAdaptiveSolver):
     method: RKMK
 
     term_structure: ClassVar = LieTerm
-    interpolation_cls: ClassVar[Callable[..., LieInterpolation]] = LieInterpolation
+
+    @property
+    def interpolation_cls(self) -> Callable[..., LieInterpolation]:  # pyright: ignore
+        # Dense output in the method's own coordinates (exp or Cayley).
+        return functools.partial(LieInterpolation, coords=self.method.coords)
 
     def __check_init__(self):
         if not isinstance(self.method, RKMK) or self.method.tableau.b_low is None:
@@ -383,22 +391,24 @@ class DiffraxLieAdaptiveSolver(diffrax.AbstractAdaptiveSolver):
             f0 = _made_jump_select(made_jump, lambda: terms.vf(t0, y0, args), solver_state)
         else:
             f0 = None
+        coords = self.method.coords
         kts, dxs, f_last = rkmk_stages(
-            tab, exact, _TermScene(terms, args), t0, y0, h, f0=f0, return_last=True
+            tab, exact, _TermScene(terms, args), t0, y0, h, f0=f0, return_last=True, coords=coords
         )
         u1 = lincomb(tab.b, kts, h)
         dx1 = lincomb(tab.b, dxs, h)
         db = tuple(hi - lo for hi, lo in zip(tab.b, tab.b_low, strict=True))
         eu = lincomb(db, kts, h)
         ex = lincomb(db, dxs, h)
-        y1 = retract(y0, u1, dx1)
+        y1 = retract(y0, u1, dx1, coords)
         y_error = LieState(_mm(y0.R, _hat(eu)), ex)
         if tab.fsal:
             dense_info = _dense_rkmk(tab, y0, u1, dx1, kts, dxs, h)
             return y1, y_error, dense_info, f_last, diffrax.RESULTS.successful
         # No FSAL: the end slope costs one more evaluation (removed unless a save needs it).
         f1 = terms.vf(t1, y1, args)
-        cu = _hermite3(u1, h * kts[0], h * _dexpinv(u1, f1.xi))
+        dinv = _dcayinv if coords == "cayley" else _dexpinv
+        cu = _hermite3(u1, h * kts[0], h * dinv(u1, f1.xi))
         cx = _hermite3(dx1, h * dxs[0], h * f1.dx)
         dense_info = dict(R0=y0.R, cu=cu, cx=_with_const(cx, y0.x))
         return y1, y_error, dense_info, None, diffrax.RESULTS.successful
