@@ -60,6 +60,7 @@ VARIANTS = {
     "RKMK4 scalarized": (s.RKMK4, True),
     "RKMK4-cayley scalarized": (lambda: s.RKMK4(coords="cayley"), True),
     "RKMK45-cayley scalarized": (lambda: s.RKMK45(coords="cayley"), True),
+    "RKMKTsit5-cayley scalarized": (lambda: s.RKMKTsit5(coords="cayley"), True),
 }
 
 
@@ -140,7 +141,8 @@ def calibrate(scene, quick):
     n_ref = 10000 if quick else 40000
     ref = s.simulate(scene, s.RKMK45(), T / n_ref, n_ref, save_every=n_ref).R[-1]
     if quick:
-        return _check_settings(scene, ref, T, {"RKMK4": 1000, "RKMK45-cayley": 400}, 1e-9)
+        n_quick = {"RKMK4": 1000, "RKMK45-cayley": 400, "RKMKTsit5-cayley": 400}
+        return _check_settings(scene, ref, T, n_quick, 1e-9)
     n_star = {
         "RKMK4": _n_star(scene, ref, T, s.RKMK4, [500, 700, 1000, 1400]),
         "RKMK4-cayley": _n_star(
@@ -148,6 +150,9 @@ def calibrate(scene, quick):
         ),
         "RKMK45-cayley": _n_star(
             scene, ref, T, lambda: s.RKMK45(coords="cayley"), [200, 250, 300, 400, 500]
+        ),
+        "RKMKTsit5-cayley": _n_star(
+            scene, ref, T, lambda: s.RKMKTsit5(coords="cayley"), [200, 250, 300, 400, 500]
         ),
     }
     tols = [1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11]
