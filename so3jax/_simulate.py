@@ -136,6 +136,7 @@ def simulate(
     max_steps: int = 4096,
     adjoint=None,
     scalarize: bool = False,
+    compensated: bool = False,
 ) -> Trajectory:
     """Integrate a scene with a fixed-step Lie-group method.
 
@@ -158,6 +159,10 @@ def simulate(
       makes batched runs (``vmap`` over thousands of trajectories) 4–5x faster,
       and a single trajectory about 3x slower; compile time grows (a few
       seconds). Fixed steps only.
+    - `compensated`: sum the rotation updates ``R <- R + dR`` with Kahan
+      compensation. Without it the rounding of that sum random-walks off the
+      group (``||R^T R - I||`` about 1e-13 after 1e6 float64 steps); with it the
+      drift stays near 1e-15, for a few percent more time. Fixed steps only.
 
     **Returns:** a `Trajectory` with ``n_steps // save_every + 1`` points and a
     `Status` saying whether the run stayed finite and where it stopped if not.
@@ -170,8 +175,8 @@ def simulate(
     if t1 is not None or rtol is not None or atol is not None:
         from ._adaptive import simulate_adaptive
 
-        if scalarize:
-            raise ValueError("scalarize=True is for fixed steps (dt, n_steps)")
+        if scalarize or compensated:
+            raise ValueError("scalarize and compensated are for fixed steps (dt, n_steps)")
         if n_steps is not None or save_every != 1:
             raise ValueError(
                 "adaptive mode (t1, rtol, atol) takes no n_steps or save_every: use saveat"
@@ -207,21 +212,38 @@ def simulate(
     dtype = scene.y0.R.dtype
     dt = _check_dt(dt, dtype)
     t0 = jnp.asarray(t0, dtype=dtype)
-    return _simulate(scene, method, dt, t0, n_steps // save_every, save_every, bool(scalarize))
+    return _simulate(
+        scene, method, dt, t0, n_steps // save_every, save_every, bool(scalarize), bool(compensated)
+    )
 
 
-def guarded_step(scene, method, dt, t0):
+def guarded_step(scene, method, dt, t0, compensated: bool = False):
     """The scan body of a fixed-step run: one step, frozen at the last good state.
 
     The carry is ``(y, k, code, bad)``: state, step index, `Status` code and the
     index of the failed step. A step that is not finite (or whose implicit solve
     failed) sets the code once and leaves ``y`` at its last good value.
+
+    With ``compensated`` the carry has a fifth entry, the Kahan compensation
+    ``c`` of the rotations: ``R <- R + dR`` is summed as ``z = dR - c``,
+    ``R1 = R + z``, ``c = (R1 - R) - z``, so the rounding of the sum no longer
+    random-walks (about ``sqrt(n) eps`` after ``n`` steps) but stays at ``eps``.
     """
 
     def one_step(carry, _):
-        y, k, code, bad = carry
+        if compensated:
+            y, k, code, bad, c = carry
+        else:
+            y, k, code, bad = carry
         t = t0 + k * dt
-        y1, failed = method.step(scene, t, y, dt)
+        if compensated:
+            dR, x1, failed = method.increment(scene, t, y, dt)
+            z = dR - c
+            R1 = y.R + z
+            c1 = (R1 - y.R) - z
+            y1 = LieState(R1, x1)
+        else:
+            y1, failed = method.step(scene, t, y, dt)
         y1 = scene.jump(t + dt, y1)
         finite = all_finite(y1)
         newly = (code == OK) & (failed | ~finite)
@@ -229,6 +251,9 @@ def guarded_step(scene, method, dt, t0):
         bad = jnp.where(newly, k, bad)
         keep = code == OK
         y = jax.tree.map(lambda new, old: jnp.where(keep, new, old), y1, y)
+        if compensated:
+            c = jnp.where(keep, c1, c)
+            return (y, k + 1, code, bad, c), None
         return (y, k + 1, code, bad), None
 
     return one_step
@@ -247,23 +272,32 @@ def scan_steps(one_step, carry, length: int, scalarize: bool):
 
 @eqx.filter_jit
 def _simulate(
-    scene, method, dt, t0, n_save: int, save_every: int, scalarize: bool = False
+    scene,
+    method,
+    dt,
+    t0,
+    n_save: int,
+    save_every: int,
+    scalarize: bool = False,
+    compensated: bool = False,
 ) -> Trajectory:
     y0 = scene.y0
     nan_obs = jax.tree.map(lambda a: jnp.full_like(a, jnp.nan), scene.observe(t0, y0))
 
-    one_step = guarded_step(scene, method, dt, t0)
+    one_step = guarded_step(scene, method, dt, t0, compensated)
 
     def save_block(carry, _):
         carry = scan_steps(one_step, carry, save_every, scalarize)
-        y, k, code, _ = carry
+        y, k, code = carry[:3]
         t = t0 + k * dt
         obs = scene.observe(t, y)
         obs = jax.tree.map(lambda a, n: jnp.where(code == OK, a, n), obs, nan_obs)
         return carry, (t, obs)
 
     init = (y0, jnp.array(0, jnp.int32), jnp.array(OK, jnp.int32), jnp.array(-1, jnp.int32))
-    (y, _, code, bad), (ts, obs) = jax.lax.scan(save_block, init, None, length=n_save)
+    if compensated:
+        init = init + (jnp.zeros_like(y0.R),)
+    (y, _, code, bad, *_), (ts, obs) = jax.lax.scan(save_block, init, None, length=n_save)
     obs0 = scene.observe(t0, y0)
     t = jnp.concatenate([t0[None], ts])
     obs = jax.tree.map(lambda a0, a: jnp.concatenate([a0[None], a]), obs0, obs)

@@ -349,11 +349,16 @@ def _rmul_cay(R: Array, u: Array) -> Array:
     Exactly orthogonal like ``exp`` but rational: no trigonometric functions,
     square roots or small-angle branches. Rows of ``R hat(u)`` are ``r_i x u``.
     """
+    return R + _cay_increment(R, u)
+
+
+def _cay_increment(R: Array, u: Array) -> Array:
+    """``R (cay(u) - I)``: the increment of `_rmul_cay`."""
     uu = u[..., None, :]
     X = _cross(R, uu)  # R hat(u)
     Y = _cross(X, uu)  # R hat(u)^2
     c = (4.0 / (4.0 + _dot(u, u)))[..., None, None]
-    return R + c * (X + 0.5 * Y)
+    return c * (X + 0.5 * Y)
 
 
 def _dcayinv(u: Array, v: Array) -> Array:

@@ -116,3 +116,12 @@ def test_scalarize_rejects_unsupported_primitives():
         scalarize(f, jnp.ones(3))(to_components(jnp.ones(3)))
     with pytest.raises(ValueError, match="fixed steps"):
         so3jax.simulate(so3jax.scenes.seed(), so3jax.RKMK45(), t1=1.0, rtol=1e-6, scalarize=True)
+
+
+def test_scalarized_compensated_matches():
+    scene = so3jax.scenes.seed()
+    kw = dict(save_every=20, compensated=True)
+    a = so3jax.simulate(scene, so3jax.RKMK4(coords="cayley"), 0.02, 60, **kw)
+    b = so3jax.simulate(scene, so3jax.RKMK4(coords="cayley"), 0.02, 60, scalarize=True, **kw)
+    np.testing.assert_allclose(np.asarray(b.R), np.asarray(a.R), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(b.Omega), np.asarray(a.Omega), rtol=0, atol=1e-14)

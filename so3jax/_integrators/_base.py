@@ -149,6 +149,17 @@ class AbstractLieSolver(eqx.Module):
     @abc.abstractmethod
     def step(self, scene: Scene, t: Array, y: LieState, h: Array) -> tuple[LieState, Array]: ...
 
+    def increment(self, scene: Scene, t: Array, y: LieState, h: Array):
+        """One step as ``(dR, x1, failed)`` with ``R1 = R + dR``.
+
+        Used by compensated (Kahan) summation (``simulate(..., compensated=True)``),
+        which needs the rotation increment before it is added. Methods override
+        it to compute ``dR`` directly; this fallback differences the step, which
+        is correct but recovers nothing of the rounding of the sum.
+        """
+        y1, failed = self.step(scene, t, y, h)
+        return y1.R - y.R, y1.x, failed
+
     @property
     def name(self) -> str:
         return type(self).__name__

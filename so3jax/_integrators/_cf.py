@@ -16,7 +16,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._so3 import _rmul_exp
+from .._so3 import _expm1, _mm, _rmul_exp
 from .._state import LieState
 from ._base import AbstractLieSolver, CFTableau, lincomb
 
@@ -27,6 +27,19 @@ def _move(R, factors, xis, h):
         if u is not None:
             R = _rmul_exp(R, u)
     return R
+
+
+def _move_increment(R, factors, xis, h):
+    """``R exp(u_1) ... exp(u_m) - R`` as ``R M`` with ``M = prod(I + E_i) - I`` built
+    from ``E_i = exp(u_i) - I`` (small when the step is small: no rounding near 1)."""
+    M = None
+    for alpha in factors:
+        u = lincomb(alpha, xis, h)
+        if u is None:
+            continue
+        E = _expm1(u)
+        M = E if M is None else M + E + _mm(M, E)
+    return jnp.zeros_like(R) if M is None else _mm(R, M)
 
 
 class CommutatorFree(AbstractLieSolver):
@@ -59,6 +72,23 @@ class CommutatorFree(AbstractLieSolver):
         R1 = _move(y.R, tab.final, xis, h)
         dx = lincomb(tab.vector_b, dxs, h)
         return LieState(R1, y.x if dx is None else y.x + dx), jnp.array(False)
+
+    def increment(self, scene, t, y, h):
+        tab = self.tableau
+        xis, dxs = [], []
+        for i in range(len(tab.c)):
+            if i == 0:
+                Yi = y
+            else:
+                R = _move(y.R, tab.stages[i - 1], xis, h)
+                dx = lincomb(tab.vector_a(i), dxs, h)
+                Yi = LieState(R, y.x if dx is None else y.x + dx)
+            f = scene.vector_field(t + tab.c[i] * h, Yi)
+            xis.append(f.xi)
+            dxs.append(f.dx)
+        dR = _move_increment(y.R, tab.final, xis, h)
+        dx = lincomb(tab.vector_b, dxs, h)
+        return dR, y.x if dx is None else y.x + dx, jnp.array(False)
 
 
 F = lambda *xs: tuple(xs)  # noqa: E731

@@ -31,7 +31,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._scene import MechanicalScene
-from .._so3 import _cross, _det, _dot, _hat, _mm, _mtv, _mv, _rmul_exp
+from .._so3 import _cross, _det, _dot, _expm1, _hat, _mm, _mtv, _mv
 from .._state import LieState
 from ._base import AbstractLieSolver
 
@@ -90,6 +90,10 @@ class LGVI(AbstractLieSolver):
         return 2
 
     def step(self, scene, t, y, h):
+        dR, x1, failed = self.increment(scene, t, y, h)
+        return LieState(y.R + dR, x1), failed
+
+    def increment(self, scene, t, y, h):
         if not isinstance(scene, MechanicalScene) or y.x.shape[-1] != 3:
             raise TypeError("LGVI needs a rigid-body scene whose vector state is Omega alone")
         body = scene.body
@@ -106,12 +110,13 @@ class LGVI(AbstractLieSolver):
         scale = jnp.sqrt(_dot(a, a)) * (1.0 + _dot(f, f)) + jnp.finfo(f.dtype).tiny
         failed = ~(jnp.sqrt(_dot(res, res)) <= 100 * eps * scale)
         Fm1 = _cayley_m1(f)  # F - I: the update R + R (F - I) rounds in proportion to |f|
-        R_body = y.R[0] + _mm(y.R[0], Fm1)
+        dR_body = _mm(y.R[0], Fm1)
         kin = scene.kinematic_rates(t + 0.5 * h, y)
         if kin is None:
-            R1 = R_body[None]
+            dR = dR_body[None]
         else:
-            R1 = jnp.concatenate([R_body[None], _rmul_exp(y.R[1:], h * kin)], 0)
+            dR = jnp.concatenate([dR_body[None], _mm(y.R[1:], _expm1(h * kin))], 0)
+        R1 = y.R + dR
         Pi_half = _mtv(Fm1 + jnp.eye(3, dtype=f.dtype), p)
         if M0 is None:
             Pi1 = Pi_half
@@ -120,4 +125,4 @@ class LGVI(AbstractLieSolver):
             for _ in range(self.torque_iters):
                 y1 = LieState(R1, body.omega_from_momentum(Pi1))
                 Pi1 = Pi_half + 0.5 * h * scene.torque(t + h, y1)
-        return LieState(R1, body.omega_from_momentum(Pi1)), failed
+        return dR, body.omega_from_momentum(Pi1), failed

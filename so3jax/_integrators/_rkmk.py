@@ -18,7 +18,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._so3 import _D_SERIES, _cross, _dcayinv, _dexpinv, _dot, _polyval
-from .._state import LieState, retract
+from .._state import LieState, increment, retract
 from ._base import AbstractLieSolver, ButcherTableau, lincomb
 
 
@@ -130,6 +130,17 @@ class RKMK(AbstractLieSolver):
         dx = lincomb(self.tableau.b, dxs, h)
         return retract(y, u, dx, self.coords), jnp.array(False)
 
+    def _weights(self):
+        return self.tableau.b
+
+    def increment(self, scene, t, y, h):
+        kts, dxs = rkmk_stages(
+            self.tableau, self.dexpinv == "exact", scene, t, y, h, coords=self.coords
+        )
+        b = self._weights()
+        u, dx = lincomb(b, kts, h), lincomb(b, dxs, h)
+        return increment(y.R, u, self.coords), y.x + dx, jnp.array(False)
+
 
 F = lambda *xs: tuple(xs)  # noqa: E731  (short rows for the tableaus below)
 
@@ -191,6 +202,9 @@ class RKMK45(RKMK):
     @property
     def order(self) -> int:
         return self.tableau.order_low if self.embedded else self.tableau.order
+
+    def _weights(self):
+        return self.tableau.b_low if self.embedded else self.tableau.b
 
     def step(self, scene, t, y, h):
         kts, dxs = rkmk_stages(
