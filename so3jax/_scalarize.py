@@ -367,6 +367,30 @@ def _apply(eqn, ins):
     raise ScalarizeError(f"scalarize: primitive {name!r} is not supported")
 
 
+_STRUCTURAL = frozenset(
+    """
+    broadcast_in_dim reshape squeeze expand_dims transpose rev slice concatenate stack unstack
+    split pad iota dot_general reduce_sum reduce_max reduce_min reduce_and reduce_or
+    reduce_prod pjit jit closed_call core_call remat checkpoint custom_jvp_call
+    custom_vjp_call cond
+    """.split()
+)
+
+
+def _check(jaxpr) -> None:
+    """Raise `ScalarizeError` up front for any primitive `_apply` does not handle."""
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        if name not in _ELEMENTWISE and name not in _STRUCTURAL:
+            raise ScalarizeError(f"scalarize: primitive {name!r} is not supported")
+        for v in eqn.params.values():
+            for sub in v if isinstance(v, (tuple, list)) else (v,):
+                if isinstance(sub, jex_core.ClosedJaxpr):
+                    _check(sub.jaxpr)
+                elif isinstance(sub, jex_core.Jaxpr):
+                    _check(sub)
+
+
 def scalarize(fn: Callable, *example_args) -> Callable:
     """``fn`` as a function over component arrays.
 
@@ -375,6 +399,7 @@ def scalarize(fn: Callable, *example_args) -> Callable:
     pytrees with every leaf an object array of components (`to_components`).
     """
     closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*example_args)
+    _check(closed.jaxpr)
     consts = [_const(c) for c in closed.consts]
     in_tree = jax.tree.structure(example_args)
     out_tree = jax.tree.structure(out_shape)

@@ -158,7 +158,9 @@ def simulate(
       component is a contiguous batch array (structure of arrays). On CPU this
       makes batched runs (``vmap`` over thousands of trajectories) 4–5x faster,
       and a single trajectory about 3x slower; compile time grows (a few
-      seconds). Fixed steps only.
+      seconds). A step with an operation the scalarizer does not handle (a loop,
+      dynamic indexing) falls back to the array program with a warning. Fixed
+      steps only.
     - `compensated`: sum the rotation updates ``R <- R + dR`` with Kahan
       compensation. Without it the rounding of that sum random-walks off the
       group (``||R^T R - I||`` about 1e-13 after 1e6 float64 steps); with it the
@@ -263,9 +265,15 @@ def scan_steps(one_step, carry, length: int, scalarize: bool):
     """``lax.scan`` of a carry-to-carry step, optionally over scalar components."""
     if not scalarize:
         return jax.lax.scan(one_step, carry, None, length=length)[0]
-    from ._scalarize import scalar_body
+    from ._scalarize import ScalarizeError, scalar_body
 
-    split, body, join = scalar_body(lambda c: one_step(c, None)[0], carry)
+    try:
+        split, body, join = scalar_body(lambda c: one_step(c, None)[0], carry)
+    except ScalarizeError as e:  # a scene or method with an unsupported primitive
+        import warnings
+
+        warnings.warn(f"{e}; running the array program instead", stacklevel=3)
+        return jax.lax.scan(one_step, carry, None, length=length)[0]
     flat, _ = jax.lax.scan(lambda f, _: (body(f), None), split(carry), None, length=length)
     return join(flat)
 

@@ -125,3 +125,24 @@ def test_scalarized_compensated_matches():
     b = so3jax.simulate(scene, so3jax.RKMK4(coords="cayley"), 0.02, 60, scalarize=True, **kw)
     np.testing.assert_allclose(np.asarray(b.R), np.asarray(a.R), rtol=0, atol=1e-14)
     np.testing.assert_allclose(np.asarray(b.Omega), np.asarray(a.Omega), rtol=0, atol=1e-14)
+
+
+def test_unsupported_step_falls_back_with_a_warning():
+    """A method whose step loops (`fori_loop`) cannot be scalarized: same result, a warning."""
+
+    class Looping(so3jax.AbstractLieSolver):
+        @property
+        def order(self):
+            return 1
+
+        def step(self, scene, t, y, h):
+            def body(i, y):
+                return so3jax.LieEuler().step(scene, t + i * h / 2, y, h / 2)[0]
+
+            return jax.lax.fori_loop(0, 2, body, y), jnp.array(False)
+
+    scene = so3jax.scenes.seed()
+    a = so3jax.simulate(scene, Looping(), 0.02, 20, save_every=20)
+    with pytest.warns(UserWarning, match="array program"):
+        b = so3jax.simulate(scene, Looping(), 0.02, 20, save_every=20, scalarize=True)
+    np.testing.assert_allclose(np.asarray(b.R), np.asarray(a.R), atol=1e-15)

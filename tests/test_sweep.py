@@ -239,3 +239,15 @@ def test_command_line(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["n_runs"] == 8
     assert Path(out / "chunks" / "chunk_00000.npz").exists()
+
+
+def test_scalarized_sweep_equals_array_program(scene, base):
+    plain = s.sweep(
+        scene, K_R, K_OMEGA, key=jax.random.key(3), n_attitudes=4, scalarize=False, **SETTINGS
+    )
+    np.testing.assert_array_equal(plain.status_code, base.status_code)
+    ok = base.status_code == 0
+    for f in ("final_psi", "settling_time", "peak_torque", "cost"):
+        np.testing.assert_allclose(
+            getattr(base, f)[ok], getattr(plain, f)[ok], rtol=1e-9, atol=1e-14
+        )
