@@ -56,7 +56,8 @@ class CommutatorFree(AbstractLieSolver):
     def order(self) -> int:
         return self.tableau.order
 
-    def step(self, scene, t, y, h):
+    def _stages(self, scene, t, y, h):
+        """Body velocities and vector derivatives of every stage."""
         tab = self.tableau
         xis, dxs = [], []
         for i in range(len(tab.c)):
@@ -69,23 +70,18 @@ class CommutatorFree(AbstractLieSolver):
             f = scene.vector_field(t + tab.c[i] * h, Yi)
             xis.append(f.xi)
             dxs.append(f.dx)
+        return xis, dxs
+
+    def step(self, scene, t, y, h):
+        tab = self.tableau
+        xis, dxs = self._stages(scene, t, y, h)
         R1 = _move(y.R, tab.final, xis, h)
         dx = lincomb(tab.vector_b, dxs, h)
         return LieState(R1, y.x if dx is None else y.x + dx), jnp.array(False)
 
     def increment(self, scene, t, y, h):
         tab = self.tableau
-        xis, dxs = [], []
-        for i in range(len(tab.c)):
-            if i == 0:
-                Yi = y
-            else:
-                R = _move(y.R, tab.stages[i - 1], xis, h)
-                dx = lincomb(tab.vector_a(i), dxs, h)
-                Yi = LieState(R, y.x if dx is None else y.x + dx)
-            f = scene.vector_field(t + tab.c[i] * h, Yi)
-            xis.append(f.xi)
-            dxs.append(f.dx)
+        xis, dxs = self._stages(scene, t, y, h)
         dR = _move_increment(y.R, tab.final, xis, h)
         dx = lincomb(tab.vector_b, dxs, h)
         return dR, y.x if dx is None else y.x + dx, jnp.array(False)
