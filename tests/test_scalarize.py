@@ -10,12 +10,11 @@ import so3jax
 from so3jax._scalarize import ScalarizeError, from_components, scalarize, to_components
 from so3jax._tune import with_gains
 
+# One method per engine (RKMK in both coordinates, commutator-free, LGVI); LieEuler
+# also runs in the gradient test. Kept short: scalarized programs compile slowly.
 METHODS = {
-    "LieEuler": so3jax.LieEuler(),
     "RKMK4": so3jax.RKMK4(),
     "RKMK4-cayley": so3jax.RKMK4(coords="cayley"),
-    "RKMK45": so3jax.RKMK45(),
-    "CG3": so3jax.CG3(),
     "CF4": so3jax.CF4(),
     "LGVI": so3jax.LGVI(),
 }
