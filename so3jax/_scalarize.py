@@ -50,7 +50,7 @@ _ELEMENTWISE = frozenset(
     copy copy_p cos cosh div eq erf erf_inv erfc exp exp2 expm1 floor ge gt imag integer_pow
     is_finite le lgamma digamma log log1p logistic lt max min mul ne neg nextafter not or pow
     real reduce_precision rem round rsqrt select_n sign sin sinh sqrt square sub tan tanh xor
-    stop_gradient square
+    stop_gradient
     """.split()
 )
 
@@ -152,8 +152,6 @@ def _fold(name, xs, params):
             return -b
     elif name == "convert_element_type" and consts[0]:
         return _cast(params["new_dtype"])(xs[0])
-    elif name == "neg" and consts[0]:
-        return np.negative(xs[0])[()]
     elif name == "select_n" and consts[0]:
         return xs[1 + int(xs[0])]
     return None

@@ -233,12 +233,10 @@ def guarded_step(scene, method, dt, t0, compensated: bool = False):
     """
 
     def one_step(carry, _):
-        if compensated:
-            y, k, code, bad, c = carry
-        else:
-            y, k, code, bad = carry
+        y, k, code, bad, *comp = carry  # comp: [c] when compensated, else []
         t = t0 + k * dt
         if compensated:
+            (c,) = comp
             dR, x1, failed = method.increment(scene, t, y, dt)
             z = dR - c
             R1 = y.R + z
@@ -254,28 +252,27 @@ def guarded_step(scene, method, dt, t0, compensated: bool = False):
         keep = code == OK
         y = jax.tree.map(lambda new, old: jnp.where(keep, new, old), y1, y)
         if compensated:
-            c = jnp.where(keep, c1, c)
-            return (y, k + 1, code, bad, c), None
-        return (y, k + 1, code, bad), None
+            comp = [jnp.where(keep, c1, c)]
+        return (y, k + 1, code, bad, *comp), None
 
     return one_step
 
 
 def scan_steps(one_step, carry, length: int, scalarize: bool):
     """``lax.scan`` of a carry-to-carry step, optionally over scalar components."""
-    if not scalarize:
-        return jax.lax.scan(one_step, carry, None, length=length)[0]
-    from ._scalarize import ScalarizeError, scalar_body
+    if scalarize:
+        from ._scalarize import ScalarizeError, scalar_body
 
-    try:
-        split, body, join = scalar_body(lambda c: one_step(c, None)[0], carry)
-    except ScalarizeError as e:  # a scene or method with an unsupported primitive
-        import warnings
+        try:
+            split, body, join = scalar_body(lambda c: one_step(c, None)[0], carry)
+        except ScalarizeError as e:  # a scene or method with an unsupported primitive
+            import warnings
 
-        warnings.warn(f"{e}; running the array program instead", stacklevel=3)
-        return jax.lax.scan(one_step, carry, None, length=length)[0]
-    flat, _ = jax.lax.scan(lambda f, _: (body(f), None), split(carry), None, length=length)
-    return join(flat)
+            warnings.warn(f"{e}; running the array program instead", stacklevel=3)
+        else:
+            flat, _ = jax.lax.scan(lambda f, _: (body(f), None), split(carry), None, length=length)
+            return join(flat)
+    return jax.lax.scan(one_step, carry, None, length=length)[0]
 
 
 @eqx.filter_jit

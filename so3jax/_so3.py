@@ -339,7 +339,12 @@ def _rmul_exp(R: Array, w: Array) -> Array:
     its entries near 1 to ``eps`` each step, the same way every step when the
     rate is steady, so float32 runs would drift off the group linearly in time.
     """
-    return R + _mm(R, _expm1(w))
+    return R + _exp_increment(R, w)
+
+
+def _exp_increment(R: Array, w: Array) -> Array:
+    """``R (exp(w) - I)``: the increment of `_rmul_exp`."""
+    return _mm(R, _expm1(w))
 
 
 def _rmul_cay(R: Array, u: Array) -> Array:

@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._so3 import _cay_increment, _expm1, _mm, _rmul_cay, _rmul_exp
+from ._so3 import _cay_increment, _exp_increment
 from ._types import Array, Float
 
 
@@ -46,15 +46,12 @@ def retract(y: LieState, u: Array, dx: Array, coords: str = "exp") -> LieState:
 
     ``coords="cayley"`` moves by the Cayley map, ``R cay(u)``, instead.
     """
-    rmul = _rmul_cay if coords == "cayley" else _rmul_exp
-    return LieState(rmul(y.R, u), y.x + dx)
+    return LieState(y.R + increment(y.R, u, coords), y.x + dx)
 
 
 def increment(R: Array, u: Array, coords: str = "exp") -> Array:
     """``R exp(u) - R`` (or ``R cay(u) - R``), computed without forming ``R exp(u)``."""
-    if coords == "cayley":
-        return _cay_increment(R, u)
-    return _mm(R, _expm1(u))
+    return (_cay_increment if coords == "cayley" else _exp_increment)(R, u)
 
 
 def all_finite(tree) -> Array:

@@ -31,7 +31,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._scene import MechanicalScene
-from .._so3 import _cross, _det, _dot, _expm1, _hat, _mm, _mtv, _mv
+from .._so3 import _cross, _det, _dot, _exp_increment, _hat, _mm, _mtv, _mv
 from .._state import LieState
 from ._base import AbstractLieSolver
 
@@ -115,7 +115,7 @@ class LGVI(AbstractLieSolver):
         if kin is None:
             dR = dR_body[None]
         else:
-            dR = jnp.concatenate([dR_body[None], _mm(y.R[1:], _expm1(h * kin))], 0)
+            dR = jnp.concatenate([dR_body[None], _exp_increment(y.R[1:], h * kin)], 0)
         R1 = y.R + dR
         Pi_half = _mtv(Fm1 + jnp.eye(3, dtype=f.dtype), p)
         if M0 is None:

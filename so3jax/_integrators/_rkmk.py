@@ -123,12 +123,8 @@ class RKMK(AbstractLieSolver):
         return self.tableau.order
 
     def step(self, scene, t, y, h):
-        kts, dxs = rkmk_stages(
-            self.tableau, self.dexpinv == "exact", scene, t, y, h, coords=self.coords
-        )
-        u = lincomb(self.tableau.b, kts, h)
-        dx = lincomb(self.tableau.b, dxs, h)
-        return retract(y, u, dx, self.coords), jnp.array(False)
+        dR, x1, failed = self.increment(scene, t, y, h)
+        return LieState(y.R + dR, x1), failed
 
     def _weights(self):
         return self.tableau.b
@@ -205,14 +201,6 @@ class RKMK45(RKMK):
 
     def _weights(self):
         return self.tableau.b_low if self.embedded else self.tableau.b
-
-    def step(self, scene, t, y, h):
-        kts, dxs = rkmk_stages(
-            self.tableau, self.dexpinv == "exact", scene, t, y, h, coords=self.coords
-        )
-        b = self.tableau.b_low if self.embedded else self.tableau.b
-        u, dx = lincomb(b, kts, h), lincomb(b, dxs, h)
-        return retract(y, u, dx, self.coords), jnp.array(False)
 
 
 class RKMK32(RKMK45):
