@@ -281,8 +281,10 @@ def near_pi(angle: float = math.pi - 0.01, controller=None, dtype=None) -> Track
     )
 
 
-#: Initial condition of `unwinding`: error angle and spin rate about e3.
-UNWINDING_ANGLE, UNWINDING_RATE = 3.0, 25.0
+#: Initial condition of `unwinding`: error angle about e3, in radians.
+UNWINDING_ANGLE = 3.0
+#: Initial condition of `unwinding`: spin rate about e3, in rad/s.
+UNWINDING_RATE = 25.0
 
 
 def unwinding(hysteresis: bool = False, delta: float = 0.2, dtype=None) -> Tracking:
