@@ -26,6 +26,7 @@ SCENES = {
     "hysteresis": ("the same with the hybrid (hysteresis) quaternion controller", 4.0),
     "dzhanibekov": ("torque-free spin about the intermediate axis: periodic flips", 20.0),
     "free-body": ("torque-free quadrotor body, generic spin", 10.0),
+    "suslov": ("Suslov's nonholonomic body <Omega, a> = 0, J = diag(1, 2, 3)", 20.0),
 }
 
 #: Scenes whose state carries a hybrid controller's memory (LGVI does not apply).
@@ -159,7 +160,31 @@ def _make_scene(name: str, dtype):
             from_euler_zyx(pi / 3, -pi / 4, pi / 6),
             jnp.asarray([2.0, 5.0, -1.0], dtype),
         )
+    if name == "suslov":
+        return _suslov_scene(dtype)
     raise AssertionError(name)
+
+
+def _suslov_scene(dtype):
+    """Suslov's body, J = diag(1, 2, 3), a = (1, 0.6, 0.3) (no principal axis).
+
+    It starts 0.3 rad (in the constraint plane) from the repelling steady rotation
+    ``-Omega*`` (``Omega*`` spans ``a^perp ∩ (J a)^perp``) at 1.5 rad/s, and turns
+    over to ``+Omega*``.
+    """
+    import jax.numpy as jnp
+    import numpy as np
+
+    from . import scenes
+
+    J = np.diag([1.0, 2.0, 3.0])
+    a = np.array([1.0, 0.6, 0.3]) / np.linalg.norm([1.0, 0.6, 0.3])
+    w = np.cross(a, J @ a)
+    w /= np.linalg.norm(w)
+    Omega0 = 1.5 * (-np.cos(0.3) * w + np.sin(0.3) * np.cross(a, w))
+    return scenes.suslov(
+        jnp.asarray(J, dtype), jnp.asarray(a, dtype), jnp.eye(3, dtype=dtype), Omega0
+    )
 
 
 def _plan(n_steps: int, save_every: int, n_chunks: int = 20) -> list[int]:
@@ -234,6 +259,7 @@ def summarize(traj, scene) -> dict:
     """Headline numbers of a run (plain floats)."""
     import numpy as np
 
+    from ._suslov import Suslov
     from .plot import error_function
 
     R = np.asarray(traj.R, dtype=np.float64)
@@ -253,6 +279,18 @@ def summarize(traj, scene) -> dict:
         below = np.nonzero(psi < 1e-6)[0]
         out["t_Psi_below_1e-6"] = float(t[below[0]]) if below.size else None
         out["max_abs_M"] = float(np.nanmax(M))
+    elif isinstance(scene, Suslov):
+        J = np.asarray(scene.body.inertia, dtype=np.float64)
+        Om = np.asarray(traj.Omega, dtype=np.float64)[ok]
+        T = 0.5 * np.einsum("ni,ij,nj->n", Om, J, Om)
+        L = np.linalg.norm(Om @ J.T, axis=-1)
+        out["max_rel_energy_error"] = float(np.abs(T / T[0] - 1).max())
+        out["max_constraint_residual"] = float(
+            np.abs(Om @ np.asarray(scene.a, dtype=np.float64)).max()
+        )
+        out["abs_J_Omega_initial"] = float(L[0])
+        out["abs_J_Omega_final"] = float(L[-1])
+        out["max_rel_change_abs_J_Omega"] = float(np.abs(L / L[0] - 1).max())
     else:
         J = np.asarray(scene.body.inertia, dtype=np.float64)
         Om = np.asarray(traj.Omega, dtype=np.float64)[ok]
@@ -331,12 +369,14 @@ def main(argv=None) -> int:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        from . import plot
+        from . import plot, scenes
 
         title = f"{args.scene} ({args.method}, dt = {args.dt:g} s)"
         figs = {"orientation.png": plot.body_axes_figure(traj, title=title)}
         if traj.Rd is not None:
             figs["tracking.png"] = plot.tracking_figure(traj, title=title)
+        elif isinstance(scene, scenes.Suslov):
+            figs["suslov.png"] = plot.suslov_figure(traj, scene, title=title)
         else:
             figs["free_body.png"] = plot.free_body_figure(traj, scene.body, title=title)
         for name, fig in figs.items():

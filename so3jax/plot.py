@@ -37,6 +37,7 @@ __all__ = [
     "orthogonality",
     "tracking_figure",
     "free_body_figure",
+    "suslov_figure",
     "body_axes_figure",
     "error_function",
     "normalized_distance",
@@ -279,6 +280,57 @@ def free_body_figure(traj, body=None, title: str | None = None):
     ax.legend(fontsize=8)
     ax.grid(True, alpha=0.3)
     orthogonality(traj, axs[2])
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def suslov_figure(traj, scene, title: str | None = None):
+    """Panels for a run of Suslov's body: ``Omega``, energy, constraint, ``|J Omega|``.
+
+    ``Omega`` by component; the relative energy error ``|T / T0 - 1|`` (the flow
+    conserves ``T``); the constraint residual ``|<Omega, a>|`` against machine
+    epsilon; and ``|J Omega|``, which the free body would keep (dashed) and the
+    constraint torque changes.
+
+    **Arguments:**
+
+    - `traj`: a `Trajectory` of a `scenes.Suslov` scene.
+    - `scene`: that scene (for ``J`` and ``a``).
+    - `title`: a figure title.
+
+    **Returns:** the `Figure` (2 x 2 panels).
+    """
+    import matplotlib.pyplot as plt
+
+    _check_single(traj)
+    t, Om = _np(traj.t), _np(traj.Omega)
+    J, a = _np(scene.body.inertia), _np(scene.a)
+    eps = np.finfo(np.asarray(traj.Omega).dtype).eps
+    fig, axs = plt.subplots(2, 2, figsize=(11, 7), constrained_layout=True)
+    ax = axs[0, 0]
+    for i in range(3):
+        ax.plot(t, Om[:, i], color=_AXIS_COLORS[i], label=rf"$\Omega_{i + 1}$")
+    ax.set_title("Body angular velocity")
+    ax.set_ylabel("rad/s")
+    ax = axs[0, 1]
+    T = 0.5 * np.einsum("ni,ij,nj->n", Om, J, Om)
+    ax.semilogy(t, _positive(np.abs(T / T[0] - 1), eps / 100), label=r"$|T/T_0 - 1|$")
+    ax.set_title("Energy error (relative)")
+    ax = axs[1, 0]
+    res = np.abs(Om @ a) / max(np.linalg.norm(Om[0]), 1e-300)
+    ax.semilogy(t, _positive(res, eps / 100), label=r"$|\langle\Omega, a\rangle| / |\Omega_0|$")
+    ax.axhline(eps, color="gray", lw=0.8, ls=":", label="machine epsilon")
+    ax.set_title("Constraint residual")
+    ax = axs[1, 1]
+    L = np.linalg.norm(Om @ J.T, axis=-1)
+    ax.plot(t, L, label=r"$|J\Omega|$")
+    ax.axhline(L[0], color="gray", lw=0.8, ls="--", label="initial (kept by a free body)")
+    ax.set_title(r"$|J\Omega|$: the broken Casimir")
+    for ax in axs.flat:
+        ax.set_xlabel("t [s]")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
     if title:
         fig.suptitle(title)
     return fig

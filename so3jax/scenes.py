@@ -16,3 +16,9 @@ from ._scenes import (
     tracking as tracking,
     unwinding as unwinding,
 )
+from ._suslov import (
+    SUSLOV_CONSTRAINT_RTOL as SUSLOV_CONSTRAINT_RTOL,
+    Suslov as Suslov,
+    suslov as suslov,
+    suslov_project as suslov_project,
+)

@@ -133,3 +133,21 @@ def test_chunk_plan():
         assert sum(sizes) == n_steps
         assert all(k % save_every == 0 and k > 0 for k in sizes)
         assert len(set(sizes)) <= 2  # at most two compilations
+
+
+def test_suslov_scene(tmp_path, capsys):
+    out = tmp_path / "out"
+    code = main(
+        ["--scene", "suslov", "--dt", "0.01", "--duration", "4", "--no-progress"]
+        + ["--out", str(out)]
+    )
+    assert code == 0
+    printed = capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scene"] == "suslov" and summary["n_steps"] == 400
+    assert summary["max_constraint_residual"] < 1e-13  # RKMK4 keeps <Omega, a> = 0
+    assert summary["max_rel_energy_error"] < 1e-8
+    assert summary["max_rel_change_abs_J_Omega"] > 0.05  # the free body would keep it
+    for key in ("max_constraint_residual", "max_rel_change_abs_J_Omega"):
+        assert key in printed
+    assert (out / "suslov.png").stat().st_size > 10_000
