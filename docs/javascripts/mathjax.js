@@ -1,14 +1,11 @@
-// MathJax for pymdownx.arithmatex (generic mode), as in the mkdocs-material docs.
+// MathJax 3 for the Markdown pages (pymdownx.arithmatex, generic mode: \( \) and \[ \])
+// and for the notebooks, whose Markdown cells keep their $ and $$ delimiters.
 window.MathJax = {
   tex: {
-    inlineMath: [["\\(", "\\)"]],
-    displayMath: [["\\[", "\\]"]],
+    inlineMath: [["\\(", "\\)"], ["$", "$"]],
+    displayMath: [["\\[", "\\]"], ["$$", "$$"]],
     processEscapes: true,
     processEnvironments: true,
-  },
-  options: {
-    ignoreHtmlClass: ".*|",
-    processHtmlClass: "arithmatex",
   },
 };
 
