@@ -35,6 +35,17 @@ from ._integrators import (
     diffrax_solver as diffrax_solver,
     lie_term as lie_term,
 )
+from ._quadrotor import (
+    CircleReference as CircleReference,
+    FigureEightReference as FigureEightReference,
+    FlipReference as FlipReference,
+    HoverReference as HoverReference,
+    LineReference as LineReference,
+    QuadrotorControl as QuadrotorControl,
+    QuadrotorGains as QuadrotorGains,
+    QuadrotorVehicle as QuadrotorVehicle,
+    quadrotor_control as quadrotor_control,
+)
 from ._simulate import Status as Status, Trajectory as Trajectory, simulate as simulate
 from ._so3 import (
     adjoint as adjoint,
@@ -109,6 +120,15 @@ __all__ = [
     "RKMKTsit5",
     "diffrax_solver",
     "lie_term",
+    "CircleReference",
+    "FigureEightReference",
+    "FlipReference",
+    "HoverReference",
+    "LineReference",
+    "QuadrotorControl",
+    "QuadrotorGains",
+    "QuadrotorVehicle",
+    "quadrotor_control",
     "Status",
     "Trajectory",
     "simulate",

@@ -42,6 +42,15 @@ class Scene(eqx.Module):
         """
         return y
 
+    def for_step(self, dt: Array) -> Scene:
+        """The scene to integrate with fixed steps of ``dt`` (itself by default).
+
+        `simulate` calls it before stepping. A scene that depends on the step
+        validates ``dt`` here (``ValueError`` naming it) and returns a copy that
+        knows it: a sampled-data controller counts steps per control period.
+        """
+        return self
+
 
 class MechanicalScene(Scene):
     """One rigid body ``(R, Omega)`` under a torque, plus kinematic rotations.

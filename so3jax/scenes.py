@@ -1,5 +1,12 @@
 """Ready-made scenes for `so3jax.simulate` (public namespace ``so3jax.scenes``)."""
 
+from ._quadrotor import (
+    Quadrotor as Quadrotor,
+    quadrotor as quadrotor,
+    quadrotor_circle as quadrotor_circle,
+    quadrotor_flip as quadrotor_flip,
+    quadrotor_recovery as quadrotor_recovery,
+)
 from ._scene import MechanicalScene as MechanicalScene, Scene as Scene
 from ._scenes import (
     SEED_DURATION as SEED_DURATION,

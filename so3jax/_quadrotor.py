@@ -1,0 +1,775 @@
+"""The quadrotor on SE(3): Lee's geometric tracking controller, continuous or sampled.
+
+Lee, Leok & McClamroch (CDC 2010) model a quadrotor as a rigid body of mass
+``m`` and inertia ``J`` with position ``x``, velocity ``v``, attitude ``R`` and
+body rate ``Omega``, driven by a total thrust ``f`` along ``-R e3`` and a body
+moment ``M`` (``e3`` points *down*):
+
+    x' = v,   m v' = m g e3 - f R e3,   R' = R hat(Omega),   J Omega' + Omega x J Omega = M.
+
+Their controller tracks a position ``x_d(t)`` and a heading ``b1_d(t)``: the
+position loop asks for the force ``-A`` (``f = -A . R e3``) and the attitude
+``Rc`` whose third axis is ``-A / |A|``; the attitude loop is the geometric
+controller of `so3jax.geometric_torque` tracking ``Rc`` with the rates
+``Omega_c``, ``dOmega_c`` of ``Rc`` along the closed loop. A reference is a plain
+function ``t -> (x_d(t), b1_d(t))``: every derivative the controller needs
+(``x_d`` up to the 4th, ``b1_d`` up to the 2nd) is taken by `jax.jvp`.
+
+The state lives on ``SO(3) x R^9``: ``y.R`` is ``R[None]`` and
+``y.x = [Omega, x, v]``. With ``control_period = T`` the controller is sampled
+and held (zero-order hold, as flight software runs it): ``y.x`` also carries the
+held ``(f, M)`` and a step counter ``c``, all with zero derivative; the scene's
+`jump` (after every step) evaluates the controller when ``c`` reaches ``T / dt``
+steps and resets ``c``. `simulate` tells the scene its step through
+`Scene.for_step`, which also checks that ``dt`` divides ``T``.
+
+References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control of a
+quadrotor UAV on SE(3)", CDC 2010 (and the FDCL's public reference code,
+fdcl-gwu); S. Cheng et al., "DiffTune: auto-tuning through auto-differentiation",
+IEEE T-RO 2024 (the tuning example).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._control import _check_gain, _geometric_torque
+from ._dynamics import RigidBody
+from ._scene import Scene, check_rotation
+from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _vee
+from ._state import LieState, LieTangent
+from ._types import Array, ArrayLike
+
+#: Vehicle and gains of DiffTune's quadrotor example (Cheng et al., T-RO 2024),
+#: the vehicle of Lee, Leok & McClamroch (CDC 2010).
+DIFFTUNE_MASS = 4.34
+DIFFTUNE_INERTIA = (0.0820, 0.0845, 0.1377)
+DIFFTUNE_GAINS = (16.0, 5.6, 8.81, 2.54)  # k_x, k_v, k_R, k_Omega (each per axis)
+#: Initial attitude of the paper's recovery case (nearly upside down: 178 degrees about e1).
+RECOVERY_R0 = ((1.0, 0.0, 0.0), (0.0, -0.9995, -0.0314), (0.0, 0.0314, -0.9995))
+
+
+# --------------------------------------------------------------------------
+# Gains, vehicle
+# --------------------------------------------------------------------------
+
+
+class QuadrotorGains(eqx.Module):
+    """Gains of Lee's quadrotor controller: position, velocity, attitude, rate.
+
+    ``A = -k_x e_x - k_v e_v - m g e3 + m x_d''``,
+    ``M = -k_R e_R - k_Omega e_Omega + ...``. Each gain is a scalar or a
+    3-vector (one value per axis: inertial axes for ``k_x``, ``k_v``, body axes
+    for ``k_R``, ``k_Omega``). The fields are arrays: `jax.grad` with respect to
+    a `QuadrotorGains` works, and ``jax.vmap(QuadrotorGains)(...)`` builds a batch.
+
+    **Arguments:**
+
+    - `k_x`: position gain (>= 0, finite), shape `()` or `(3,)`.
+    - `k_v`: velocity gain (>= 0, finite), shape `()` or `(3,)`.
+    - `k_R`: attitude gain (>= 0, finite), shape `()` or `(3,)`.
+    - `k_Omega`: body-rate gain (>= 0, finite), shape `()` or `(3,)`.
+
+    Negative or non-finite gains raise ``ValueError`` when the values are
+    concrete (under `jit`/`vmap` they are not checked).
+
+    References: T. Lee, M. Leok, N. H. McClamroch, CDC 2010, eqs. (12), (16).
+    """
+
+    k_x: Array
+    k_v: Array
+    k_R: Array
+    k_Omega: Array
+
+    def __init__(self, k_x: ArrayLike, k_v: ArrayLike, k_R: ArrayLike, k_Omega: ArrayLike):
+        self.k_x = _check_gain(k_x, "QuadrotorGains.k_x")
+        self.k_v = _check_gain(k_v, "QuadrotorGains.k_v")
+        self.k_R = _check_gain(k_R, "QuadrotorGains.k_R")
+        self.k_Omega = _check_gain(k_Omega, "QuadrotorGains.k_Omega")
+
+
+class QuadrotorVehicle(eqx.Module):
+    """Mass, inertia and gravity of a quadrotor.
+
+    **Fields:**
+
+    - `mass`: ``m`` in kg, shape `()`.
+    - `body`: a `RigidBody` (the inertia ``J``).
+    - `g`: gravitational acceleration in m/s^2 (along ``+e3``, down), shape `()`.
+    """
+
+    mass: Array
+    body: RigidBody
+    g: Array
+
+
+def _check_scalar(value, name: str, positive: bool) -> Array:
+    a = _as_float(value)
+    if a.shape != ():
+        raise ValueError(f"{name} must be a scalar, got shape {a.shape}")
+    if _is_concrete(a):
+        v = float(np.asarray(a))
+        if not math.isfinite(v) or (v <= 0 if positive else v < 0):
+            want = "positive and finite" if positive else ">= 0 and finite"
+            raise ValueError(f"{name} must be {want}, got {v}")
+    return a
+
+
+# --------------------------------------------------------------------------
+# The controller
+# --------------------------------------------------------------------------
+
+
+class QuadrotorControl(NamedTuple):
+    """What Lee's controller computes at one state (each leaf may carry batch axes).
+
+    - `f`: total thrust, shape `()`; `M`: body moment, shape `(3,)`.
+    - `Rc`: commanded attitude ``[b1c, b2c, b3c]``; `Omega_c`, `dOmega_c`: its body
+      rate and the rate's derivative along the closed loop, shape `(3,)`.
+    - `x_d`: desired position; `e_x`, `e_v`: position and velocity errors.
+    - `e_R`, `e_Omega`: attitude and rate errors against ``Rc``; `Psi`:
+      ``1/2 tr(I - Rc^T R)``.
+    """
+
+    f: Array
+    M: Array
+    Rc: Array
+    Omega_c: Array
+    dOmega_c: Array
+    x_d: Array
+    e_x: Array
+    e_v: Array
+    e_R: Array
+    e_Omega: Array
+    Psi: Array
+
+
+def _e3(dtype):
+    return jnp.asarray([0.0, 0.0, 1.0], dtype)
+
+
+def _unit(a):
+    """``a / |a|`` with a safe norm (``|a| = 0`` gives 0, not NaN, and a finite gradient)."""
+    n2 = _dot(a, a)
+    small = n2 < jnp.finfo(a.dtype).tiny
+    n2_safe = jnp.where(small, 1.0, n2)
+    return jnp.where(small[..., None], 0.0, a / jnp.sqrt(n2_safe)[..., None])
+
+
+def _time_derivatives(fn, t, order: int):
+    """``[fn(t), fn'(t), ..., fn^(order)(t)]`` by nested `jax.jvp` in ``t``."""
+
+    def up(g):
+        def dg(s):
+            out, tan = jax.jvp(g, (s,), (jnp.ones_like(s),))
+            return out + [tan[-1]]
+
+        return dg
+
+    g = lambda s: [fn(s)]  # noqa: E731
+    for _ in range(order):
+        g = up(g)
+    return g(t)
+
+
+def _commanded_attitude(A, b1d):
+    """``Rc = [b1c, b2c, b3c]`` from ``A`` and the heading ``b1_d``.
+
+    ``b3c = -A/|A|``, ``b2c = b3c x b1_d / |b3c x b1_d|``, ``b1c = b2c x b3c``
+    (Lee, Leok & McClamroch 2010, after eq. (14)).
+    """
+    b3c = -_unit(A)
+    b2c = _unit(_cross(b3c, b1d))
+    b1c = _cross(b2c, b3c)
+    return jnp.stack([b1c, b2c, b3c], axis=-1)
+
+
+def quadrotor_control(
+    gains: QuadrotorGains,
+    vehicle: QuadrotorVehicle,
+    t: Array,
+    x: Array,
+    v: Array,
+    R: Array,
+    Omega: Array,
+    reference: Callable,
+) -> QuadrotorControl:
+    """Lee's geometric tracking controller on SE(3), as a pure function.
+
+    Position loop: ``e_x = x - x_d``, ``e_v = v - x_d'``,
+    ``A = -k_x e_x - k_v e_v - m g e3 + m x_d''``, ``f = -A . R e3``,
+    ``Rc = [b1c, b2c, b3c]`` with ``b3c = -A/|A|``,
+    ``b2c = b3c x b1_d / |b3c x b1_d|``, ``b1c = b2c x b3c``.
+
+    Attitude loop (`geometric_torque` tracking ``Rc``):
+    ``M = -k_R e_R - k_Omega e_Omega + Omega x J Omega
+    - J (hat(Omega) R^T Rc Omega_c - R^T Rc dOmega_c)``, with
+    ``hat(Omega_c) = Rc^T Rc'`` and ``dOmega_c = Omega_c'``.
+
+    ``Rc'`` and ``Rc''`` are the exact time derivatives along the *continuous*
+    closed loop (with ``f = -A . R e3`` applied, whatever is held), in three parts:
+
+    - the reference's derivatives (``x_d`` to the 4th, ``b1_d`` to the 2nd) by
+      nested `jax.jvp` in ``t``: any differentiable function of time works;
+    - ``A'`` and ``A''`` by the paper's closed-loop formulas (as in the FDCL's
+      code): ``e_v' = g e3 - f R e3 / m - x_d''``,
+      ``A' = -k_x e_v - k_v e_v' + m x_d'''``,
+      ``f' = -A' . R e3 - A . R hat(Omega) e3``,
+      ``e_v'' = -(f' R e3 + f R hat(Omega) e3) / m - x_d'''``,
+      ``A'' = -k_x e_v' - k_v e_v'' + m x_d''''``; no ``Omega'`` appears, so
+      there is no loop through ``M``;
+    - ``Rc'``, ``Rc''`` by nested `jax.jvp` of the map ``(A, b1_d) -> Rc``
+      along the curve ``s -> (A + A' s + A'' s^2/2, b1_d + b1_d' s + b1_d'' s^2/2)``
+      at ``s = 0``, instead of hand-written derivatives of unit vectors.
+
+    **Arguments:**
+
+    - `gains`: a `QuadrotorGains`.
+    - `vehicle`: a `QuadrotorVehicle` (mass, inertia, g).
+    - `t`: time, shape `()`.
+    - `x`, `v`: position and velocity (inertial frame, ``e3`` down), shape `(3,)`.
+    - `R`: attitude, shape `(3, 3)`; `Omega`: body rate, shape `(3,)`.
+    - `reference`: a function ``t -> (x_d(t), b1_d(t))``, both shape `(3,)`.
+
+    **Returns:** a `QuadrotorControl` (``f``, ``M``, ``Rc``, ``Omega_c``,
+    ``dOmega_c``, ``x_d`` and the tracking errors).
+
+    References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control
+    of a quadrotor UAV on SE(3)", CDC 2010, eqs. (12)-(16); the FDCL's
+    reference code (fdcl-gwu) for the derivatives of ``A``.
+    """
+    t = jnp.asarray(t, x.dtype)
+    x_d, x1, x2, x3, x4 = _time_derivatives(lambda s: reference(s)[0], t, 4)
+    b1d, b1d1, b1d2 = _time_derivatives(lambda s: reference(s)[1], t, 2)
+    k_x, k_v = gains.k_x, gains.k_v
+    m, g = vehicle.mass, vehicle.g
+    e3 = _e3(x.dtype)
+    Re3 = _mv(R, e3)
+    Re3_1 = _mv(R, _cross(Omega, e3))  # (R e3)' = R hat(Omega) e3
+    e_x = x - x_d
+    e_v = v - x1
+    A = -k_x * e_x - k_v * e_v - m * g * e3 + m * x2
+    f = -_dot(A, Re3)
+    e_v1 = g * e3 - (f / m)[..., None] * Re3 - x2
+    A1 = -k_x * e_v - k_v * e_v1 + m * x3
+    f1 = -_dot(A1, Re3) - _dot(A, Re3_1)
+    e_v2 = -(f1[..., None] * Re3 + f[..., None] * Re3_1) / m - x3
+    A2 = -k_x * e_v1 - k_v * e_v2 + m * x4
+
+    def rc(s):
+        return _commanded_attitude(A + s * (A1 + 0.5 * s * A2), b1d + s * (b1d1 + 0.5 * s * b1d2))
+
+    def rc01(s):
+        return jax.jvp(rc, (s,), (jnp.ones_like(s),))
+
+    zero = jnp.zeros((), x.dtype)
+    (Rc, Rc1), (_, Rc2) = jax.jvp(rc01, (zero,), (jnp.ones_like(zero),))
+    RcT = _mT(Rc)
+    Omega_c = _vee(_mm(RcT, Rc1))
+    # d/dt (Rc^T Rc') = Rc'^T Rc' + Rc^T Rc''; the first term is symmetric and `_vee`
+    # keeps the skew part only.
+    dOmega_c = _vee(_mm(RcT, Rc2))
+    M = _geometric_torque(gains, vehicle.body, R, Omega, Rc, Omega_c, dOmega_c)
+    RtRc = _mm(_mT(R), Rc)
+    e_R = _vee(_mT(RtRc))
+    e_Omega = Omega - _mv(RtRc, Omega_c)
+    Psi = 0.5 * (3.0 - jnp.trace(RtRc, axis1=-2, axis2=-1))
+    return QuadrotorControl(f, M, Rc, Omega_c, dOmega_c, x_d, e_x, e_v, e_R, e_Omega, Psi)
+
+
+# --------------------------------------------------------------------------
+# References t -> (x_d(t), b1_d(t))
+# --------------------------------------------------------------------------
+
+
+def _e1_like(t):
+    t = jnp.asarray(t)
+    e1 = jnp.asarray([1.0, 0.0, 0.0], t.dtype if jnp.issubdtype(t.dtype, jnp.floating) else None)
+    return jnp.broadcast_to(e1, t.shape + (3,))
+
+
+def _vec3(value, name: str) -> Array:
+    a = _as_float(value)
+    if a.shape == ():
+        a = jnp.broadcast_to(a, (3,))
+    if a.shape != (3,):
+        raise ValueError(f"{name} must be a 3-vector, got shape {a.shape}")
+    return a
+
+
+class HoverReference(eqx.Module):
+    """Hover: ``x_d(t) = p``, ``b1_d = e1``.
+
+    **Arguments:**
+
+    - `position`: ``p``, shape `(3,)` (default the origin).
+    """
+
+    position: Array
+
+    def __init__(self, position: ArrayLike = (0.0, 0.0, 0.0)):
+        self.position = _vec3(position, "position")
+
+    def __call__(self, t):
+        t = jnp.asarray(t)
+        return jnp.broadcast_to(self.position, t.shape + (3,)), _e1_like(t)
+
+
+class LineReference(eqx.Module):
+    """Constant velocity along a line: ``x_d(t) = p + u t``, ``b1_d = e1``.
+
+    **Arguments:**
+
+    - `velocity`: ``u`` in m/s, shape `(3,)`.
+    - `start`: ``p``, shape `(3,)`.
+    """
+
+    velocity: Array
+    start: Array
+
+    def __init__(self, velocity: ArrayLike = (1.0, 0.0, 0.0), start: ArrayLike = (0.0, 0.0, 0.0)):
+        self.velocity = _vec3(velocity, "velocity")
+        self.start = _vec3(start, "start")
+
+    def __call__(self, t):
+        t = jnp.asarray(t)
+        return self.start + self.velocity * t[..., None], _e1_like(t)
+
+
+class CircleReference(eqx.Module):
+    """A horizontal circle through the origin (a helix with a climb rate), ``b1_d = e1``.
+
+    ``x_d(t) = (r (1 - cos wt), r sin wt, a sin wt - c t)`` (``e3`` down, so
+    ``c > 0`` climbs). DiffTune's example is ``CircleReference(2.0, 1.0, 0.1)``:
+    ``x_d = (2 (1 - cos t), 2 sin t, 0.1 sin t)``.
+
+    **Arguments:**
+
+    - `radius`: ``r`` in m.
+    - `rate`: ``w`` in rad/s.
+    - `vertical`: ``a``, amplitude of a vertical oscillation, in m.
+    - `climb`: ``c``, climb rate in m/s (a helix).
+    """
+
+    radius: Array
+    rate: Array
+    vertical: Array
+    climb: Array
+
+    def __init__(self, radius=1.0, rate=1.0, vertical=0.0, climb=0.0):
+        self.radius = _check_scalar(radius, "radius", positive=True)
+        self.rate = _check_scalar(rate, "rate", positive=False)
+        self.vertical = _check_scalar(vertical, "vertical", positive=False)
+        self.climb = _as_float(climb)
+
+    def __call__(self, t):
+        t = jnp.asarray(t)
+        wt = self.rate * t
+        r = self.radius
+        x = jnp.stack(
+            [r * (1 - jnp.cos(wt)), r * jnp.sin(wt), self.vertical * jnp.sin(wt) - self.climb * t],
+            -1,
+        )
+        return x, _e1_like(t)
+
+
+class FigureEightReference(eqx.Module):
+    """A horizontal figure-8 (lemniscate of Gerono) through the origin, ``b1_d = e1``.
+
+    ``x_d(t) = (a sin wt, a/2 sin 2wt, 0)``.
+
+    **Arguments:**
+
+    - `size`: ``a`` in m.
+    - `rate`: ``w`` in rad/s.
+    """
+
+    size: Array
+    rate: Array
+
+    def __init__(self, size=1.0, rate=1.0):
+        self.size = _check_scalar(size, "size", positive=True)
+        self.rate = _check_scalar(rate, "rate", positive=False)
+
+    def __call__(self, t):
+        t = jnp.asarray(t)
+        wt = self.rate * t
+        z = jnp.zeros_like(wt)
+        return jnp.stack(
+            [self.size * jnp.sin(wt), 0.5 * self.size * jnp.sin(2 * wt), z], -1
+        ), _e1_like(t)
+
+
+def _smoothstep9(u):
+    """``S(u) = 126u^5 - 420u^6 + 540u^7 - 315u^8 + 70u^9`` on [0, 1], 0 before, 1 after.
+
+    ``S'``..``S''''`` vanish at both ends, so ``x_d`` built from it has continuous
+    derivatives up to the 4th (what the controller uses).
+    """
+    u = jnp.clip(u, 0.0, 1.0)
+    return u**5 * (126 + u * (-420 + u * (540 + u * (-315 + 70 * u))))
+
+
+class FlipReference(eqx.Module):
+    """A flip: one vertical loop about ``e1``, flown fast enough at the top to turn over.
+
+    Hover at the origin until ``start``; then one loop of radius ``r`` in the
+    ``y-z`` plane, centred ``r`` above the origin (``e3`` is down):
+    ``x_d = (0, r sin phi, -r (1 - cos phi))`` with
+    ``phi(t) = 2 pi S((t - start) / duration)`` and ``S`` the degree-9
+    smoothstep (speed and its first three derivatives vanish at both ends);
+    hover again afterwards; ``b1_d = e1`` throughout. The desired specific force
+    ``x_d'' - g e3`` goes once around the origin when ``r phi'^2 > g`` at the top
+    (true for the default: ``r phi'^2`` peaks near ``2.7 g``), so the commanded
+    thrust axis ``b3c`` turns through a full revolution about ``e1``: the
+    vehicle flips once, upside down at the top of the loop.
+
+    **Arguments:**
+
+    - `radius`: ``r`` in m.
+    - `duration`: time of the loop in s.
+    - `start`: time the loop begins in s.
+    """
+
+    radius: Array
+    duration: Array
+    start: Array
+
+    def __init__(self, radius=1.0, duration=3.0, start=1.0):
+        self.radius = _check_scalar(radius, "radius", positive=True)
+        self.duration = _check_scalar(duration, "duration", positive=True)
+        self.start = _check_scalar(start, "start", positive=False)
+
+    def __call__(self, t):
+        t = jnp.asarray(t)
+        phi = 2 * jnp.pi * _smoothstep9((t - self.start) / self.duration)
+        r = self.radius
+        x = jnp.stack([jnp.zeros_like(phi), r * jnp.sin(phi), -r * (1 - jnp.cos(phi))], -1)
+        return x, _e1_like(t)
+
+
+def _check_reference(reference, dtype):
+    if not callable(reference):
+        raise TypeError(
+            "reference must be a function t -> (x_d(t), b1_d(t)), e.g. "
+            f"so3jax.CircleReference(), got {type(reference).__name__}"
+        )
+    try:
+        out = jax.eval_shape(reference, jax.ShapeDtypeStruct((), dtype))
+    except Exception as e:
+        raise ValueError(f"reference(t) failed on a scalar time: {e}") from e
+    shapes = [getattr(o, "shape", None) for o in out] if isinstance(out, tuple | list) else None
+    if shapes is None or len(shapes) != 2 or any(s != (3,) for s in shapes):
+        raise ValueError(
+            "reference(t) must return (x_d, b1_d), two arrays of shape (3,); "
+            f"got {jax.tree.map(lambda o: o.shape, out)}"
+        )
+
+
+# --------------------------------------------------------------------------
+# The scene
+# --------------------------------------------------------------------------
+
+_N = 9  # Omega, x, v
+_HELD = slice(9, 13)  # f, M (sampled control)
+_COUNTER = 13
+
+
+class Quadrotor(Scene):
+    """A quadrotor under Lee's controller on ``SO(3) x R^9``, continuous or sampled.
+
+    State: ``y.R = R[None]``; ``y.x = [Omega, x, v]`` (continuous control) or
+    ``[Omega, x, v, f, M, c]`` (sampled: the held thrust and moment and the
+    number of steps since the last sample). `observe` saves ``R``, ``Omega``,
+    ``M`` (the moment applied) and, in `Trajectory.extras`, ``x``, ``v``, ``f``
+    (the thrust applied), ``Rc``, ``Omega_c``, ``dOmega_c``, ``x_d``, ``e_x``, ``e_v``,
+    ``e_R``, ``e_Omega`` and ``Psi`` (the controller's view of the saved state,
+    with its continuous-time formulas).
+
+    **Fields:**
+
+    - `vehicle`: a `QuadrotorVehicle`.
+    - `gains`: a `QuadrotorGains`.
+    - `reference`: a function ``t -> (x_d(t), b1_d(t))``.
+    - `y0`: the initial `LieState`.
+    - `control_period`: ``T`` (an array) or ``None`` (continuous control).
+    - `steps_per_sample`: ``T / dt``, set by `for_step` (``None`` before).
+    """
+
+    vehicle: QuadrotorVehicle
+    gains: QuadrotorGains
+    reference: Callable
+    y0: LieState
+    control_period: Array | None = None
+    steps_per_sample: Array | None = None
+
+    @property
+    def sampled(self) -> bool:
+        return self.control_period is not None
+
+    def control(self, t, y) -> QuadrotorControl:
+        """The controller at ``(t, y)`` (continuous-time formulas)."""
+        R = y.R[..., 0, :, :]
+        Omega, x, v = y.x[..., 0:3], y.x[..., 3:6], y.x[..., 6:9]
+        return quadrotor_control(self.gains, self.vehicle, t, x, v, R, Omega, self.reference)
+
+    def _applied(self, t, y):
+        if self.sampled:
+            return y.x[..., 9], y.x[..., 10:13]
+        c = self.control(t, y)
+        return c.f, c.M
+
+    def vector_field(self, t, y):
+        R = y.R[..., 0, :, :]
+        Omega, v = y.x[..., 0:3], y.x[..., 6:9]
+        f, M = self._applied(t, y)
+        e3 = _e3(y.x.dtype)
+        dOmega = self.vehicle.body.euler_rhs(Omega, M)
+        dv = self.vehicle.g * e3 - (f / self.vehicle.mass)[..., None] * _mv(R, e3)
+        parts = [dOmega, v, dv]
+        if self.sampled:
+            parts.append(jnp.zeros_like(y.x[..., _N:]))
+        return LieTangent(Omega[..., None, :], jnp.concatenate(parts, -1))
+
+    def for_step(self, dt):
+        if not self.sampled:
+            return self
+        T = self.control_period
+        if _is_concrete(dt) and _is_concrete(T):
+            ratio = float(np.asarray(T, np.float64)) / float(np.asarray(dt, np.float64))
+            n = round(ratio)
+            if n < 1 or abs(ratio - n) > 1e-6 * max(1.0, ratio):
+                raise ValueError(
+                    f"dt ({float(dt):g}) must divide control_period ({float(T):g}) into a whole "
+                    f"number of steps; got control_period / dt = {ratio:.6g}"
+                )
+            n = jnp.asarray(n, T.dtype)
+        else:
+            n = jnp.maximum(jnp.round(T / dt), 1.0).astype(T.dtype)
+        return eqx.tree_at(lambda s: s.steps_per_sample, self, n, is_leaf=lambda a: a is None)
+
+    def jump(self, t, y):
+        if not self.sampled:
+            return y
+        if self.steps_per_sample is None:
+            raise ValueError(
+                "a sampled-data quadrotor (control_period given) runs with fixed steps that "
+                "divide control_period: simulate(scene, method, dt, n_steps); adaptive steps "
+                "do not apply"
+            )
+        count = y.x[..., _COUNTER] + 1.0
+        sample = count > self.steps_per_sample - 0.5
+        c = self.control(t, y)
+        new = jnp.concatenate([c.f[..., None], c.M], -1)
+        held = jnp.where(sample[..., None], new, y.x[..., _HELD])
+        count = jnp.where(sample, jnp.zeros_like(count), count)
+        x = jnp.concatenate([y.x[..., :_N], held, count[..., None]], -1)
+        return LieState(y.R, x)
+
+    def observe(self, t, y):
+        c = self.control(t, y)
+        f, M = (y.x[..., 9], y.x[..., 10:13]) if self.sampled else (c.f, c.M)
+        return {
+            "R": y.R[..., 0, :, :],
+            "Omega": y.x[..., 0:3],
+            "M": M,
+            "x": y.x[..., 3:6],
+            "v": y.x[..., 6:9],
+            "f": f,
+            "Rc": c.Rc,
+            "Omega_c": c.Omega_c,
+            "dOmega_c": c.dOmega_c,
+            "x_d": c.x_d,
+            "e_x": c.e_x,
+            "e_v": c.e_v,
+            "e_R": c.e_R,
+            "e_Omega": c.e_Omega,
+            "Psi": c.Psi,
+        }
+
+
+def _cast_floats(tree, dtype):
+    return jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, tree)
+
+
+def _vector_arg(value, name: str, dtype) -> Array:
+    a = _as_float(value)
+    if a.shape == ():
+        a = jnp.broadcast_to(a, (3,))
+    if a.shape != (3,):
+        raise ValueError(
+            f"{name} must be a 3-vector (or a scalar for all three), got shape {a.shape}"
+        )
+    if _is_concrete(a) and not np.all(np.isfinite(np.asarray(a))):
+        raise ValueError(f"{name} contains NaN or inf")
+    return a.astype(dtype)
+
+
+def quadrotor(
+    mass: ArrayLike,
+    inertia: ArrayLike | RigidBody,
+    gains: QuadrotorGains,
+    reference: Callable,
+    x0: ArrayLike = 0.0,
+    v0: ArrayLike = 0.0,
+    R0: ArrayLike | None = None,
+    Omega0: ArrayLike = 0.0,
+    g: ArrayLike = 9.81,
+    control_period: ArrayLike | None = None,
+) -> Quadrotor:
+    """A quadrotor tracking a position and heading under Lee's controller on SE(3).
+
+    ``x' = v``, ``m v' = m g e3 - f R e3``, ``R' = R hat(Omega)``,
+    ``J Omega' + Omega x J Omega = M`` (``e3`` down, thrust along ``-R e3``),
+    with ``(f, M)`` from `quadrotor_control`: evaluated inside the vector field
+    (``control_period=None``), or sampled at ``t = k T`` from the state at that
+    time and held until the next sample (``control_period=T``: zero-order hold;
+    `simulate` then needs a ``dt`` that divides ``T``, and the initial state
+    holds the control sampled at ``t = 0``).
+
+    **Arguments:**
+
+    - `mass`: ``m`` in kg (> 0).
+    - `inertia`: `(3, 3)` inertia, 3 principal moments, or a `RigidBody`.
+    - `gains`: a `QuadrotorGains`.
+    - `reference`: a function ``t -> (x_d(t), b1_d(t))``, both shape `(3,)`,
+      differentiable in ``t`` (e.g. `CircleReference`, `FlipReference`).
+      ``b1_d`` need not be a unit vector but must not be parallel to ``b3c``.
+    - `x0`, `v0`: initial position and velocity, shape `(3,)` (or a scalar).
+    - `R0`: initial attitude, shape `(3, 3)` (default the identity: level).
+    - `Omega0`: initial body rate, shape `(3,)` (or a scalar).
+    - `g`: gravitational acceleration (>= 0).
+    - `control_period`: ``T`` in s (> 0) for sampled-and-held control, or ``None``.
+
+    The dtype of the scene is that of ``R0`` (default: JAX's default float).
+
+    **Returns:** a `Quadrotor` scene for `simulate`.
+
+    References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control
+    of a quadrotor UAV on SE(3)", CDC 2010.
+    """
+    if R0 is None:
+        R0 = jnp.eye(3, dtype=jnp.result_type(float))
+    R0 = check_rotation(R0, "R0")
+    dtype = R0.dtype
+    m = _check_scalar(mass, "mass", positive=True).astype(dtype)
+    g = _check_scalar(g, "g", positive=False).astype(dtype)
+    body = inertia if isinstance(inertia, RigidBody) else RigidBody(inertia)
+    if body.inertia.dtype != dtype:
+        body = RigidBody(body.inertia.astype(dtype))
+    if not isinstance(gains, QuadrotorGains):
+        raise TypeError(f"gains must be a QuadrotorGains, got {type(gains).__name__}")
+    gains = _cast_floats(gains, dtype)
+    _check_reference(reference, dtype)
+    reference = _cast_floats(reference, dtype)
+    x0 = _vector_arg(x0, "x0", dtype)
+    v0 = _vector_arg(v0, "v0", dtype)
+    Omega0 = _vector_arg(Omega0, "Omega0", dtype)
+    T = None
+    if control_period is not None:
+        T = _check_scalar(control_period, "control_period", positive=True).astype(dtype)
+    vehicle = QuadrotorVehicle(mass=m, body=body, g=g)
+    y0 = LieState(R0[None], jnp.concatenate([Omega0, x0, v0]))
+    scene = Quadrotor(vehicle=vehicle, gains=gains, reference=reference, y0=y0, control_period=T)
+    if T is not None:
+        c = scene.control(jnp.zeros((), dtype), y0)
+        held = jnp.concatenate([c.f[None], c.M, jnp.zeros(1, dtype)])
+        scene = eqx.tree_at(lambda s: s.y0, scene, LieState(y0.R, jnp.concatenate([y0.x, held])))
+    return scene
+
+
+# --------------------------------------------------------------------------
+# Ready scenes
+# --------------------------------------------------------------------------
+
+
+def _float_dtype(dtype):
+    return jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+
+
+def _difftune_vehicle_gains(dtype):
+    k_x, k_v, k_R, k_O = (jnp.full(3, k, dtype) for k in DIFFTUNE_GAINS)
+    return jnp.asarray(DIFFTUNE_INERTIA, dtype), QuadrotorGains(k_x, k_v, k_R, k_O)
+
+
+def quadrotor_circle(
+    control_period=0.0025, gains: QuadrotorGains | None = None, dtype=None
+) -> Quadrotor:
+    """DiffTune's quadrotor example: a circle of radius 2 m at 1 rad/s, sampled control.
+
+    ``m = 4.34`` kg, ``J = diag(0.0820, 0.0845, 0.1377)`` kg m^2, gains
+    ``k_x = 16``, ``k_v = 5.6``, ``k_R = 8.81``, ``k_Omega = 2.54`` on every axis
+    (3-vectors: 12 tunable numbers), ``x_d = (2 (1 - cos t), 2 sin t, 0.1 sin t)``,
+    ``b1_d = e1``, start at rest at the origin, level, with
+    ``Omega0 = (0, 0, 0.001)``; control held over ``control_period`` (0.0025 s).
+    DiffTune runs it for 10 s.
+
+    **Arguments:**
+
+    - `control_period`: ``T`` in s, or ``None`` for continuous control.
+    - `gains`: other `QuadrotorGains` (default: those above).
+    - `dtype`: float dtype.
+
+    References: S. Cheng, M. Kim, L. Song, C. Yang, Y. Jin, S. Wang, N. Hovakimyan,
+    "DiffTune: Auto-Tuning through Auto-Differentiation", IEEE T-RO 2024.
+    """
+    dtype = _float_dtype(dtype)
+    J, g0 = _difftune_vehicle_gains(dtype)
+    return quadrotor(
+        jnp.asarray(DIFFTUNE_MASS, dtype),
+        J,
+        g0 if gains is None else gains,
+        CircleReference(2.0, 1.0, 0.1),
+        R0=jnp.eye(3, dtype=dtype),
+        Omega0=jnp.asarray([0.0, 0.0, 0.001], dtype),
+        control_period=control_period,
+    )
+
+
+def quadrotor_recovery(control_period=None, dtype=None) -> Quadrotor:
+    """The paper's recovery: hover at the origin from a nearly upside-down start.
+
+    ``R0 = [[1, 0, 0], [0, -0.9995, -0.0314], [0, 0.0314, -0.9995]]`` (178.2
+    degrees about ``e1``, ``Psi(R0, I) = 1.9995``), at rest at the origin, with
+    ``x_d = 0`` and ``b1_d = e1`` (Lee, Leok & McClamroch, CDC 2010, second
+    case); DiffTune's vehicle and gains. The paper's matrix is not exactly
+    orthogonal (``0.9995^2 + 0.0314^2 = 1 - 1.4e-7``); we take its nearest rotation.
+    """
+    from ._so3 import project
+
+    dtype = _float_dtype(dtype)
+    J, gains = _difftune_vehicle_gains(dtype)
+    R0 = project(jnp.asarray(RECOVERY_R0, dtype))
+    return quadrotor(
+        jnp.asarray(DIFFTUNE_MASS, dtype),
+        J,
+        gains,
+        HoverReference(jnp.zeros(3, dtype)),
+        R0=R0,
+        control_period=control_period,
+    )
+
+
+def quadrotor_flip(control_period=None, dtype=None) -> Quadrotor:
+    """A flip: hover, one vertical loop of radius 1 m in 3 s from t = 1 s, hover again.
+
+    See `FlipReference`; DiffTune's vehicle and gains, start at rest, level, at
+    the origin.
+    """
+    dtype = _float_dtype(dtype)
+    J, gains = _difftune_vehicle_gains(dtype)
+    return quadrotor(
+        jnp.asarray(DIFFTUNE_MASS, dtype),
+        J,
+        gains,
+        FlipReference(),
+        R0=jnp.eye(3, dtype=dtype),
+        control_period=control_period,
+    )

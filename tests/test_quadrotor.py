@@ -1,0 +1,292 @@
+"""The quadrotor on SE(3): Lee's controller, sampled control, gradients in the 12 gains."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import so3jax as s
+from so3jax._quadrotor import (
+    DIFFTUNE_GAINS,
+    DIFFTUNE_INERTIA,
+    DIFFTUNE_MASS,
+    CircleReference,
+    FigureEightReference,
+    HoverReference,
+    QuadrotorGains,
+    quadrotor,
+    quadrotor_circle,
+)
+
+M_, J_ = DIFFTUNE_MASS, np.diag(DIFFTUNE_INERTIA)
+G0 = np.repeat(np.asarray(DIFFTUNE_GAINS), 3)  # (k_x, k_v, k_R, k_Omega), 3 each
+E3 = np.array([0.0, 0.0, 1.0])
+
+
+def gains_from(p):
+    return QuadrotorGains(p[0:3], p[3:6], p[6:9], p[9:12])
+
+
+def np_hat(w):
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def np_vee(W):
+    return 0.5 * np.array([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]])
+
+
+# ----------------------------------------------------------------------------
+# Hover
+# ----------------------------------------------------------------------------
+
+
+def test_hover_with_zero_error_holds_still():
+    p = jnp.array([1.0, -2.0, -3.0])
+    for T in (None, 0.01):
+        sc = quadrotor(
+            2.0, (0.1, 0.12, 0.2), gains_from(G0), HoverReference(p), x0=p, control_period=T
+        )
+        c = sc.control(jnp.array(0.0), sc.y0)
+        if T is None:  # one compiled run (the sampled one) is enough for "stays put"
+            continue
+        assert float(c.f) == pytest.approx(2.0 * 9.81, rel=1e-15)  # f = m g
+        np.testing.assert_array_equal(np.asarray(c.M), 0.0)
+        np.testing.assert_array_equal(np.asarray(c.Omega_c), 0.0)
+        np.testing.assert_array_equal(np.asarray(c.dOmega_c), 0.0)
+        np.testing.assert_allclose(c.Rc, np.eye(3), atol=0)
+        tr = s.simulate(sc, s.RKMK4(), 0.005, 200, save_every=50)
+        assert bool(tr.status.ok)
+        assert np.abs(np.asarray(tr.extras["x"]) - np.asarray(p)).max() < 1e-12
+        assert np.abs(np.asarray(tr.R) - np.eye(3)).max() < 1e-14
+        assert np.abs(np.asarray(tr.extras["f"]) - 2 * 9.81).max() < 1e-12
+        assert np.abs(np.asarray(tr.M)).max() < 1e-12
+
+
+# ----------------------------------------------------------------------------
+# Omega_c, dOmega_c against finite differences of Rc along the closed loop
+# ----------------------------------------------------------------------------
+
+
+def test_commanded_rates_match_finite_differences_of_Rc():
+    """Figure-8 from an offset, tilted start (continuous control): every derivative matters."""
+    dt = 1e-3
+    sc = quadrotor(
+        M_,
+        DIFFTUNE_INERTIA,
+        gains_from(G0),
+        FigureEightReference(1.5, 1.2),
+        x0=jnp.array([0.3, -0.2, 0.1]),
+        v0=jnp.array([0.0, 0.5, 0.0]),
+        R0=s.from_euler_zyx(0.3, 0.2, -0.25),
+        Omega0=jnp.array([0.5, -0.3, 0.2]),
+    )
+    tr = s.simulate(sc, s.RKMK4(), dt, 600)
+    assert bool(tr.status.ok)
+    Rc = np.asarray(tr.extras["Rc"])
+    Wc = np.asarray(tr.extras["Omega_c"])
+    dWc = np.asarray(tr.extras["dOmega_c"])
+    k = np.arange(2, Rc.shape[0] - 2)
+    # 4th-order central differences (error ~ dt^4).
+    dRc = (Rc[k - 2] - 8 * Rc[k - 1] + 8 * Rc[k + 1] - Rc[k + 2]) / (12 * dt)
+    Wc_fd = np.stack([np_vee(Rc[i].T @ d) for i, d in zip(k, dRc, strict=True)])
+    dWc_fd = (Wc[k - 2] - 8 * Wc[k - 1] + 8 * Wc[k + 1] - Wc[k + 2]) / (12 * dt)
+    err_w = np.abs(Wc_fd - Wc[k]).max() / np.abs(Wc).max()
+    err_dw = np.abs(dWc_fd - dWc[k]).max() / np.abs(dWc).max()
+    print(f"Omega_c rel err {err_w:.2e}, dOmega_c rel err {err_dw:.2e}")
+    assert np.abs(Wc).max() > 0.5 and np.abs(dWc).max() > 1.0  # a real test
+    assert err_w < 1e-8 and err_dw < 1e-7
+    # Rc is a rotation; Psi is 1/2 tr(I - Rc^T R)
+    assert np.abs(np.einsum("nji,njk->nik", Rc, Rc) - np.eye(3)).max() < 1e-13
+
+
+# ----------------------------------------------------------------------------
+# An independent NumPy model: hand-written chain rules (fdcl-style), SciPy DOP853
+# ----------------------------------------------------------------------------
+
+
+def _unit_d2(a, a1, a2):
+    """u = a/|a| and its first two derivatives."""
+    n = np.linalg.norm(a)
+    u = a / n
+    n1 = u @ a1
+    u1 = (a1 - u * n1) / n
+    n2 = u1 @ a1 + u @ a2
+    u2 = (a2 - 2 * u1 * n1 - u * n2) / n
+    return u, u1, u2
+
+
+def np_circle(t):
+    """DiffTune's circle and its derivatives up to the 4th; b1_d = e1."""
+    c, sn = np.cos(t), np.sin(t)
+    d = [
+        np.array([2 * (1 - c), 2 * sn, 0.1 * sn]),
+        np.array([2 * sn, 2 * c, 0.1 * c]),
+        np.array([2 * c, -2 * sn, -0.1 * sn]),
+        np.array([-2 * sn, -2 * c, -0.1 * c]),
+        np.array([-2 * c, 2 * sn, 0.1 * sn]),
+    ]
+    return d
+
+
+def np_control(t, x, v, R, W, k, g=9.81):
+    kx, kv, kR, kW = k[0:3], k[3:6], k[6:9], k[9:12]
+    xd, xd1, xd2, xd3, xd4 = np_circle(t)
+    b1d, b1d1, b1d2 = np.array([1.0, 0, 0]), np.zeros(3), np.zeros(3)
+    m = M_
+    ex, ev = x - xd, v - xd1
+    A = -kx * ex - kv * ev - m * g * E3 + m * xd2
+    Re3 = R @ E3
+    f = -A @ Re3
+    ev1 = g * E3 - f / m * Re3 - xd2
+    A1 = -kx * ev - kv * ev1 + m * xd3
+    Re3_1 = R @ np_hat(W) @ E3
+    f1 = -A1 @ Re3 - A @ Re3_1
+    ev2 = -(f1 * Re3 + f * Re3_1) / m - xd3
+    A2 = -kx * ev1 - kv * ev2 + m * xd4
+    b3, b31, b32 = _unit_d2(-A, -A1, -A2)
+    C = np.cross(b3, b1d)
+    C1 = np.cross(b31, b1d) + np.cross(b3, b1d1)
+    C2 = np.cross(b32, b1d) + 2 * np.cross(b31, b1d1) + np.cross(b3, b1d2)
+    b2, b21, b22 = _unit_d2(C, C1, C2)
+    b1 = np.cross(b2, b3)
+    b11 = np.cross(b21, b3) + np.cross(b2, b31)
+    b12 = np.cross(b22, b3) + 2 * np.cross(b21, b31) + np.cross(b2, b32)
+    Rc, Rc1, Rc2 = (np.column_stack(c) for c in ((b1, b2, b3), (b11, b21, b31), (b12, b22, b32)))
+    Wc = np_vee(Rc.T @ Rc1)
+    dWc = np_vee(Rc.T @ Rc2)
+    eR = np_vee(Rc.T @ R)  # skew part: 1/2 vee(Rc^T R - R^T Rc)
+    eW = W - R.T @ Rc @ Wc
+    M = -kR * eR - kW * eW + np.cross(W, J_ @ W) - J_ @ (np_hat(W) @ R.T @ Rc @ Wc - R.T @ Rc @ dWc)
+    return f, M, ex
+
+
+def np_rhs(t, y, f, M, g=9.81):
+    v, R, W = y[3:6], y[6:15].reshape(3, 3), y[15:18]
+    dv = g * E3 - f / M_ * (R @ E3)
+    dW = np.linalg.solve(J_, M - np.cross(W, J_ @ W))
+    return np.concatenate([v, dv, (R @ np_hat(W)).ravel(), dW])
+
+
+def test_sampled_control_matches_scipy_dop853():
+    T, per, n_hold = 0.01, 4, 100  # hold 10 ms, 4 RKMK4 steps per hold, 1 s
+    x0, R0 = np.array([0.5, -0.4, 0.3]), np.asarray(s.from_euler_zyx(0.4, -0.3, 0.2))
+    W0 = np.array([0.3, -0.2, 0.1])
+    sc = quadrotor_circle(control_period=T)
+    sc = quadrotor(
+        M_, DIFFTUNE_INERTIA, sc.gains, sc.reference, x0=x0, R0=R0, Omega0=W0, control_period=T
+    )
+    tr = s.simulate(sc, s.RKMK4(), T / per, per * n_hold, save_every=per)
+    assert bool(tr.status.ok)
+    y = np.concatenate([x0, np.zeros(3), R0.ravel(), W0])
+    for i in range(n_hold):
+        t = i * T
+        f, M, _ = np_control(t, y[0:3], y[3:6], y[6:15].reshape(3, 3), y[15:18], G0)
+        if i in (0, 37):  # the held control is the controller's at the sample
+            np.testing.assert_allclose(tr.extras["f"][i], f, rtol=1e-10)
+            np.testing.assert_allclose(tr.M[i], M, rtol=1e-9, atol=1e-10)
+        sol = solve_ivp(np_rhs, (t, t + T), y, method="DOP853", rtol=1e-13, atol=1e-13, args=(f, M))
+        y = sol.y[:, -1]
+    err = max(
+        np.abs(np.asarray(tr.extras["x"][-1]) - y[0:3]).max(),
+        np.abs(np.asarray(tr.extras["v"][-1]) - y[3:6]).max(),
+        np.abs(np.asarray(tr.R[-1]) - y[6:15].reshape(3, 3)).max(),
+        np.abs(np.asarray(tr.Omega[-1]) - y[15:18]).max(),
+    )
+    print(f"max error against DOP853 after {n_hold} holds: {err:.2e}")
+    assert err < 1e-8
+
+
+# ----------------------------------------------------------------------------
+# The DiffTune loss: gradient in the 12 gains
+# ----------------------------------------------------------------------------
+
+
+def difftune_loss(p, n_steps=120):
+    sc = quadrotor_circle(gains=gains_from(p))
+    tr = s.simulate(sc, s.RKMK4(), 0.0025, n_steps)
+    return jnp.sum(tr.extras["e_x"] ** 2)
+
+
+def test_difftune_gradient_matches_central_differences():
+    p = jnp.asarray(G0)
+    g_rev = np.asarray(jax.jit(jax.grad(difftune_loss))(p))
+    g_fwd = np.asarray(jax.jit(jax.jacfwd(difftune_loss))(p))
+    loss = jax.jit(difftune_loss)
+    fd = np.zeros(12)
+    for i in range(12):
+        h = 1e-5 * G0[i]
+        e = np.zeros(12)
+        e[i] = h
+        fd[i] = (float(loss(p + e)) - float(loss(p - e))) / (2 * h)
+    rel = np.abs(g_rev - fd) / np.abs(fd).max()
+    print("rel. err of the gradient vs central differences", rel.max())
+    print("forward vs reverse", np.abs(g_fwd - g_rev).max() / np.abs(g_rev).max())
+    assert np.all(np.abs(fd) > 0)
+    np.testing.assert_allclose(g_rev, fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max())
+    np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-10, atol=1e-12 * np.abs(g_rev).max())
+
+
+# ----------------------------------------------------------------------------
+# float32, bad input
+# ----------------------------------------------------------------------------
+
+
+def test_float32_sampled_circle():
+    sc32 = quadrotor_circle(dtype=jnp.float32)
+    tr = s.simulate(sc32, s.RKMK4(), 0.0025, 800, save_every=8)
+    assert tr.R.dtype == jnp.float32 and tr.extras["x"].dtype == jnp.float32
+    assert bool(tr.status.ok)
+    tr64 = s.simulate(quadrotor_circle(), s.RKMK4(), 0.0025, 800, save_every=8)
+    assert np.abs(np.asarray(tr.extras["x"]) - np.asarray(tr64.extras["x"])).max() < 1e-4
+    assert float(s.orthogonality_error(tr.R[-1])) < 1e-5
+    # dt = T/2 in float32: sampled at even steps, held over the odd ones.
+    tr = s.simulate(quadrotor_circle(0.005, dtype=jnp.float32), s.RKMK4(), 0.0025, 40)
+    f = np.asarray(tr.extras["f"])
+    assert np.all(f[0:-1:2] == f[1::2])
+    assert np.all(f[1::2] != f[2::2])
+
+
+def test_flip_turns_over():
+    from so3jax._quadrotor import quadrotor_flip
+
+    sc = quadrotor_flip()
+    tr = s.simulate(sc, s.RKMK4(), 0.002, 2500, save_every=25)
+    assert bool(tr.status.ok)
+    b3 = np.asarray(tr.R)[:, :, 2]  # body axis e3 in the world (down when level)
+    assert b3[:, 2].min() < -0.9  # upside down at the top of the loop
+    ex = np.linalg.norm(np.asarray(tr.extras["e_x"]), axis=-1)
+    assert ex.max() < 0.5 and ex[-1] < 0.05  # tracked the loop, back at hover
+
+
+def test_bad_input():
+    g = gains_from(G0)
+    ref = CircleReference()
+    with pytest.raises(ValueError, match="mass"):
+        quadrotor(-1.0, DIFFTUNE_INERTIA, g, ref)
+    with pytest.raises(ValueError, match="mass"):
+        quadrotor(0.0, DIFFTUNE_INERTIA, g, ref)
+    with pytest.raises(ValueError, match="inertia"):
+        quadrotor(1.0, (1.0, -1.0, 1.0), g, ref)
+    with pytest.raises(ValueError, match="inertia"):
+        quadrotor(1.0, np.array([[1.0, 0.5, 0], [0, 1, 0], [0, 0, 1]]), g, ref)
+    with pytest.raises(ValueError, match="reference"):
+        quadrotor(1.0, DIFFTUNE_INERTIA, g, lambda t: (jnp.zeros(3), jnp.zeros(2)))
+    with pytest.raises(ValueError, match="reference"):
+        quadrotor(1.0, DIFFTUNE_INERTIA, g, lambda t: jnp.zeros(3))
+    with pytest.raises(TypeError, match="reference"):
+        quadrotor(1.0, DIFFTUNE_INERTIA, g, 3.0)
+    for T in (0.0, -0.01):
+        with pytest.raises(ValueError, match="control_period"):
+            quadrotor(1.0, DIFFTUNE_INERTIA, g, ref, control_period=T)
+    with pytest.raises(ValueError, match="QuadrotorGains.k_v"):
+        QuadrotorGains(1.0, -1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="x0"):
+        quadrotor(1.0, DIFFTUNE_INERTIA, g, ref, x0=jnp.zeros(2))
+    sc = quadrotor(1.0, DIFFTUNE_INERTIA, g, ref, control_period=0.01)
+    with pytest.raises(ValueError, match=r"dt \(0.003\) must divide control_period"):
+        s.simulate(sc, s.RKMK4(), 0.003, 10)
+    with pytest.raises(ValueError, match="fixed steps"):
+        s.simulate(sc, s.RKMK45(), t1=1.0, rtol=1e-6, atol=1e-6)
+    assert eqx.tree_equal(sc.for_step(0.0025).steps_per_sample, jnp.asarray(4.0))
