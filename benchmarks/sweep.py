@@ -9,7 +9,7 @@ body-steps per second, with float32 as a ratio to float64 in the same run.
 Writes ``results/sweep[-quick].json`` and ``.png``.
 
     python benchmarks/sweep.py            # full
-    python benchmarks/sweep.py --quick    # 8 x 8 grid x 4 attitudes, 2 s
+    python benchmarks/sweep.py --quick    # smoke run: 8 x 8 grid x 4 attitudes, LieEuler
 """
 
 from __future__ import annotations
@@ -31,13 +31,16 @@ import _common as C  # noqa: E402
 
 import so3jax as so3  # noqa: E402
 from so3jax import _plot_sweep  # noqa: E402
+from so3jax._integrators import METHODS, method_by_name  # noqa: E402
 
 
-def run(dtype: str, n_grid: int, n_att: int, n_steps: int, chunk: int) -> dict:
+def run(dtype: str, n_grid: int, n_att: int, n_steps: int, chunk: int, method: str) -> dict:
     scene = so3.scenes.seed(dtype=dtype)
     k_R = np.geomspace(1.0, 100.0, n_grid)
     k_O = np.geomspace(0.3, 30.0, n_grid)
-    kw = dict(key=jax.random.key(0), dt=1e-2, n_steps=n_steps, progress=False)
+    kw = dict(
+        key=jax.random.key(0), dt=1e-2, n_steps=n_steps, method=METHODS[method](), progress=False
+    )
     chunk = min(chunk, n_grid * n_grid * n_att)
     # Warm-up: one chunk of the same shape (a list of gain pairs x the same
     # attitudes), so the timed sweep reuses everything compiled.
@@ -51,6 +54,7 @@ def run(dtype: str, n_grid: int, n_att: int, n_steps: int, chunk: int) -> dict:
     n_runs = result.cost.size
     return {
         "dtype": dtype,
+        "method": method,
         "grid": [n_grid, n_grid],
         "n_attitudes": n_att,
         "n_runs": n_runs,
@@ -71,9 +75,20 @@ def main(argv=None):
     p.add_argument("--quick", action="store_true")
     p.add_argument("--out", default=str(Path(__file__).parent / "results"))
     p.add_argument("--chunk-size", type=int, default=2048)
+    p.add_argument(
+        "--method",
+        type=method_by_name,
+        default=None,
+        help=f"one of {', '.join(METHODS)} (default RKMK4; --quick: LieEuler)",
+    )
     args = p.parse_args(argv)
+    # --quick is a smoke run: small sizes and the one-stage method (compiling
+    # the scalarized RKMK4 chunk alone takes several seconds).
     n_grid, n_att, n_steps = (8, 4, 200) if args.quick else (64, 16, 1000)
-    rows = [run(dt, n_grid, n_att, n_steps, args.chunk_size) for dt in ("float64", "float32")]
+    method = args.method or ("LieEuler" if args.quick else "RKMK4")
+    rows = [
+        run(dt, n_grid, n_att, n_steps, args.chunk_size, method) for dt in ("float64", "float32")
+    ]
     for r in rows:
         print(
             f"{r['dtype']}: {r['n_runs']} runs x {n_steps} steps in {r['seconds']:.2f} s: "
