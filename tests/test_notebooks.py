@@ -6,12 +6,18 @@ runs pytest (so the notebooks use whatever environment the suite uses), with
 a scratch folder as the working directory. The notebooks check their own
 results with ``assert`` cells, so a failure here is either a crash or a
 failed check, reported with the cell's traceback. The notebooks are executed
-two at a time (most of their time is single-threaded compilation) and must be
-stored with their outputs cleared.
+two at a time (most of their time is single-threaded compilation), in scratch
+copies: nothing is written back.
+
+The notebooks are stored *with* outputs, written by ``notebooks/execute.py``
+(full mode). Each records a hash of its code cells and of the library's
+sources; a test checks that the hash is current, so the stored outputs come
+from the current code.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import re
@@ -36,14 +42,39 @@ def test_there_are_notebooks():
     assert len(NOTEBOOKS) >= 3, f"expected the notebooks in {ROOT / 'notebooks'}"
 
 
+def _load_execute_script():
+    spec = importlib.util.spec_from_file_location("_nb_execute", ROOT / "notebooks" / "execute.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+RERUN = "run `python notebooks/execute.py` and commit the notebooks"
+# A cell that prints or shows a figure must have stored outputs.
+SHOWS_SOMETHING = re.compile(r"\b(print|display)\(|plt\.show\(|^\s*fig\s*$", re.MULTILINE)
+
+
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=IDS)
-def test_notebook_is_stored_without_outputs(path):
+def test_notebook_outputs_are_current(path):
+    """The stored outputs come from one run of the current cells on the current library."""
+    execute = _load_execute_script()
     nb = nbformat.read(path, as_version=4)
     nbformat.validate(nb)
-    for i, cell in enumerate(nb.cells):
-        if cell.cell_type == "code":
-            assert cell.outputs == [], f"{path.name}: cell {i} has stored outputs; clear them"
-            assert cell.execution_count is None, f"{path.name}: cell {i} has an execution count"
+    stored = execute.stored_hash(nb)
+    assert stored is not None, f"{path.name} has no stored outputs hash; {RERUN}"
+    assert stored == execute.source_hash(nb), (
+        f"{path.name}: its outputs are stale (its code cells or so3jax/ changed since it "
+        f"was executed); {RERUN}"
+    )
+    code = [c for c in nb.cells if c.cell_type == "code" and c.source.strip()]
+    for n, cell in enumerate(code, start=1):
+        where = f"{path.name}, code cell {n}"
+        # Counts 1, 2, 3, ...: every cell ran, in order, in one kernel.
+        assert cell.execution_count == n, f"{where} was not executed in order; {RERUN}"
+        errors = [o for o in cell.outputs if o.output_type == "error"]
+        assert not errors, f"{where} stored an error: {errors[0].get('ename')}"
+        if SHOWS_SOMETHING.search(cell.source):
+            assert cell.outputs, f"{where} prints or shows a figure but has no outputs; {RERUN}"
 
 
 def _write_kernel_spec(folder: Path) -> None:
