@@ -88,3 +88,13 @@ def test_every_page_is_in_the_site_nav():
     for page in sorted((ROOT / "docs").rglob("*.md")):
         rel = page.relative_to(ROOT / "docs").as_posix()
         assert rel in config, f"docs/{rel} is not in the nav of mkdocs.yml"
+
+
+def test_getting_started_has_the_readme_commands():
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    block = re.search(r"```bash\n(.*?)```", readme, re.DOTALL)
+    assert block, "README.md has no bash block"
+    page = (ROOT / "docs" / "getting-started.md").read_text(encoding="utf-8")
+    assert block.group(1) in page, (
+        "docs/getting-started.md must show the README's first commands exactly; copy them"
+    )
