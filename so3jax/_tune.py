@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -320,15 +321,24 @@ class TuneResult:
     - `k_R_history`, `k_Omega_history`: the gains at every iterate, shape
       `(n_iter + 1,)` or `(n_iter + 1, 3)` (per-axis gains).
     - `best_iteration`: index of `gains` in the histories.
+    - `gains_history`: with a custom ``cost``, the gains at every iterate, a
+      pytree like `gains` whose leaves have a leading axis of length
+      ``n_iter + 1`` (``None`` for the default tracking cost, whose histories
+      are `k_R_history` and `k_Omega_history`).
+
+    With a custom ``cost`` (`tune`'s general mode), `gains` is a pytree like
+    ``gains0`` and `k_R_history`, `k_Omega_history` are filled only when the
+    gains have ``k_R`` and ``k_Omega`` fields (``None`` otherwise).
     """
 
-    gains: GeometricGains
+    gains: object
     cost: float
     initial_cost: float
     cost_history: np.ndarray
-    k_R_history: np.ndarray
-    k_Omega_history: np.ndarray
+    k_R_history: np.ndarray | None
+    k_Omega_history: np.ndarray | None
     best_iteration: int
+    gains_history: object = None
 
 
 def _initial_batch(scene, R0, Omega0):
@@ -397,7 +407,7 @@ def expected_cost(
 
 def tune(
     scene,
-    gains0: GeometricGains | tuple = (1.0, 1.0),
+    gains0=None,
     *,
     method: AbstractLieSolver | None = None,
     dt: float = 1e-2,
@@ -413,8 +423,11 @@ def tune(
     checkpoint_every: int | str | None = "auto",
     gradient: str = "reverse",
     progress: bool = False,
+    cost: Callable | None = None,
+    bounds: tuple | None = None,
+    where: Callable | None = None,
 ) -> TuneResult:
-    """Tune the geometric controller's gains by gradient descent on the tracking cost.
+    """Tune a controller's gains by gradient descent on a cost of the trajectory.
 
     Minimises ``C(k) = 1/B sum_b C(k; R0_b)`` (`expected_cost`) over
     ``k = (k_R, k_Omega)`` in log coordinates ``k = exp(theta)`` (the gains
@@ -443,10 +456,63 @@ def tune(
       parameters it is usually faster, see ``benchmarks/tune.py``).
     - `progress`: show a tqdm progress bar.
 
+    **General mode** (``cost`` given): any scene, any pytree of gains, any
+    differentiable cost. Minimises ``cost(simulate(scene with gains, method,
+    dt, n_steps, save_every))`` over the gains themselves (no log
+    coordinates), with optional box constraints by projection (DiffTune's
+    ``gains >= 0.5`` is ``bounds=(0.5, None)``):
+
+    - `cost`: a function ``Trajectory -> scalar``, differentiable, e.g.
+      ``lambda tr: jnp.sum(tr.extras["e_x"] ** 2)``.
+    - `gains0`: the initial gains, a pytree like ``where(scene)`` (default:
+      the scene's own gains).
+    - `where`: a function ``scene -> gains`` naming what is tuned (default:
+      ``scene.gains`` if the scene has it, else ``scene.controller.gains``).
+    - `bounds`: ``(lower, upper)``, each ``None``, a scalar or a pytree like
+      the gains; after every update the gains are clipped to them.
+    - `optimizer` (or `learning_rate` for the default Adam), `n_iter`,
+      `gradient` (``"reverse"``: `jax.grad`; ``"forward"``: `jax.jacfwd`, one
+      tangent per gain), `method`, `dt`, `n_steps`, `save_every`, `progress`
+      as above; `R0`, `Omega0`, `weights`, `per_axis` and `checkpoint_every`
+      belong to the default tracking cost and are not accepted.
+
     **Returns:** a `TuneResult` (the best gains seen and the cost history).
     """
     import optax
 
+    if cost is not None:
+        legacy = {
+            "R0": R0 is not None,
+            "Omega0": Omega0 is not None,
+            "weights": weights is not None,
+            "per_axis": per_axis,
+            "checkpoint_every": checkpoint_every != "auto",
+        }
+        given = [k for k, v in legacy.items() if v]
+        if given:
+            raise ValueError(
+                f"{', '.join(given)} belong(s) to the default tracking cost; with a custom "
+                "cost, put the initial state in the scene and the weights in the cost"
+            )
+        return _tune_general(
+            scene,
+            gains0,
+            cost,
+            method=RKMK4() if method is None else method,
+            dt=dt,
+            n_steps=n_steps,
+            save_every=save_every,
+            n_iter=n_iter,
+            optimizer=optax.adam(learning_rate) if optimizer is None else optimizer,
+            bounds=bounds,
+            where=where,
+            gradient=gradient,
+            progress=progress,
+        )
+    if bounds is not None or where is not None:
+        raise ValueError("bounds and where are for a custom cost (pass cost=...)")
+    if gains0 is None:
+        gains0 = (1.0, 1.0)
     _check_tracking_scene(scene)
     if method is None:
         method = RKMK4()
@@ -494,32 +560,7 @@ def tune(
             checkpoint_every=checkpoint_every,
         )
 
-    def value_and_grad(theta):
-        if gradient == "reverse":
-            return jax.value_and_grad(loss)(theta)
-        grad, value = jax.jacfwd(lambda th: (loss(th),) * 2, has_aux=True)(theta)
-        return value, grad
-
-    @jax.jit
-    def step(theta, opt_state):
-        value, grad = value_and_grad(theta)
-        updates, opt_state = optimizer.update(grad, opt_state, theta)
-        return optax.apply_updates(theta, updates), opt_state, value
-
-    history, thetas = [], []
-    iterator = range(n_iter)
-    if progress:
-        from tqdm.auto import tqdm
-
-        iterator = tqdm(iterator, desc="tune", unit="it")
-    for _ in iterator:
-        thetas.append(theta)
-        theta, opt_state, value = step(theta, opt_state)
-        history.append(float(value))
-        if progress:
-            iterator.set_postfix(cost=f"{history[-1]:.5g}")
-    thetas.append(theta)
-    history.append(float(jax.jit(loss)(theta)))
+    history, thetas = _descend(loss, theta, optimizer, opt_state, n_iter, gradient, None, progress)
     cost = np.asarray(history)
     k_R_hist = np.exp(np.stack([np.asarray(t[0]) for t in thetas]))
     k_O_hist = np.exp(np.stack([np.asarray(t[1]) for t in thetas]))
@@ -534,4 +575,157 @@ def tune(
         k_R_history=k_R_hist,
         k_Omega_history=k_O_hist,
         best_iteration=best,
+    )
+
+
+def _value_and_grad(loss, gradient: str):
+    if gradient == "reverse":
+        return jax.value_and_grad(loss)
+
+    def fwd(params):
+        grad, value = jax.jacfwd(lambda p: (loss(p),) * 2, has_aux=True)(params)
+        return value, grad
+
+    return fwd
+
+
+def _descend(loss, params, optimizer, opt_state, n_iter, gradient, project, progress):
+    """``n_iter`` jitted optimiser steps; returns the costs and the iterates (``n_iter + 1``).
+
+    ``project`` (or ``None``) maps the updated parameters back into the feasible set.
+    """
+    import optax
+
+    value_and_grad = _value_and_grad(loss, gradient)
+
+    @jax.jit
+    def step(params, opt_state):
+        value, grad = value_and_grad(params)
+        updates, opt_state = optimizer.update(grad, opt_state, params)
+        params = optax.apply_updates(params, updates)
+        if project is not None:
+            params = project(params)
+        return params, opt_state, value
+
+    history, iterates = [], []
+    iterator = range(n_iter)
+    if progress:
+        from tqdm.auto import tqdm
+
+        iterator = tqdm(iterator, desc="tune", unit="it")
+    for _ in iterator:
+        iterates.append(params)
+        params, opt_state, value = step(params, opt_state)
+        history.append(float(value))
+        if progress:
+            iterator.set_postfix(cost=f"{history[-1]:.5g}")
+    iterates.append(params)
+    history.append(float(jax.jit(loss)(params)))
+    return history, iterates
+
+
+def _default_where(scene):
+    if hasattr(scene, "gains"):
+        return lambda s: s.gains
+    if hasattr(getattr(scene, "controller", None), "gains"):
+        return lambda s: s.controller.gains
+    raise ValueError(f"scene {type(scene).__name__} has no gains to tune; pass where=lambda s: ...")
+
+
+def _bound(value, params, name: str):
+    if value is None:
+        return None
+    if jax.tree.structure(value) == jax.tree.structure(params):
+        return value
+    v = _as_float(value)
+    if v.shape != ():
+        raise ValueError(f"bounds ({name}) must be None, a scalar or a pytree like gains0")
+    return jax.tree.map(lambda p: jnp.broadcast_to(v, jnp.shape(p)).astype(p.dtype), params)
+
+
+def _tune_general(
+    scene,
+    gains0,
+    cost,
+    *,
+    method,
+    dt,
+    n_steps,
+    save_every,
+    n_iter,
+    optimizer,
+    bounds,
+    where,
+    gradient,
+    progress,
+) -> TuneResult:
+    import optax
+
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a so3jax scene, got {type(scene).__name__}")
+    if not callable(cost):
+        raise TypeError(f"cost must be a function Trajectory -> scalar, got {cost!r}")
+    if not isinstance(method, AbstractLieSolver):
+        raise TypeError(f"method must be a so3jax Lie-group method, got {method!r}")
+    if gradient not in ("reverse", "forward"):
+        raise ValueError(f"gradient must be 'reverse' or 'forward', got {gradient!r}")
+    n_iter = _check_int(n_iter, "n_iter", 0)
+    n_steps = _check_int(n_steps, "n_steps", 1)
+    save_every = _check_int(save_every, "save_every", 1)
+    where = _default_where(scene) if where is None else where
+    current = where(scene)
+    dtype = scene.y0.R.dtype
+    params = current if gains0 is None else gains0
+    if jax.tree.structure(params) != jax.tree.structure(current):
+        raise ValueError(
+            "gains0 must have the structure of the scene's gains "
+            f"({jax.tree.structure(current)}), got {jax.tree.structure(params)}"
+        )
+    params = jax.tree.map(lambda p: jnp.asarray(p, dtype), params)
+    if bounds is None:
+        project = None
+    else:
+        try:
+            lo, hi = bounds
+        except (TypeError, ValueError):
+            raise ValueError(f"bounds must be a pair (lower, upper), got {bounds!r}") from None
+        lo, hi = _bound(lo, params, "lower"), _bound(hi, params, "upper")
+
+        def project(p):
+            if lo is not None:
+                p = jax.tree.map(jnp.maximum, p, lo)
+            if hi is not None:
+                p = jax.tree.map(jnp.minimum, p, hi)
+            return p
+
+        params = project(params)
+
+    def loss(p):
+        from ._simulate import simulate
+
+        sc = eqx.tree_at(where, scene, p)
+        return cost(simulate(sc, method, dt, n_steps, save_every))
+
+    optimizer = optax.apply_if_finite(optimizer, max_consecutive_errors=5)
+    opt_state = optimizer.init(params)
+    history, iterates = _descend(
+        loss, params, optimizer, opt_state, n_iter, gradient, project, progress
+    )
+    costs = np.asarray(history)
+    stacked = jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *iterates)
+    best = int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))
+    gains = iterates[best]
+
+    def field(name):
+        return np.asarray(getattr(stacked, name)) if hasattr(stacked, name) else None
+
+    return TuneResult(
+        gains=gains,
+        cost=float(costs[best]),
+        initial_cost=float(costs[0]),
+        cost_history=costs,
+        k_R_history=field("k_R"),
+        k_Omega_history=field("k_Omega"),
+        best_iteration=best,
+        gains_history=stacked,
     )

@@ -290,3 +290,29 @@ def test_bad_input():
     with pytest.raises(ValueError, match="fixed steps"):
         s.simulate(sc, s.RKMK45(), t1=1.0, rtol=1e-6, atol=1e-6)
     assert eqx.tree_equal(sc.for_step(0.0025).steps_per_sample, jnp.asarray(4.0))
+
+
+def test_tune_general_mode_difftune_short():
+    """tune(cost=...): projected gradient descent on the 12 gains, forward = reverse."""
+    import optax
+
+    sc = quadrotor_circle()
+    kw = dict(
+        cost=lambda tr: jnp.sum(tr.extras["e_x"] ** 2),
+        dt=0.0025,
+        n_steps=120,
+        n_iter=3,
+        optimizer=optax.sgd(1.0),
+        bounds=(15.9, None),
+    )
+    rev = s.tune(sc, **kw)
+    fwd = s.tune(sc, gradient="forward", **kw)
+    assert rev.cost_history.shape == (4,) and rev.k_R_history.shape == (4, 3)
+    assert rev.cost < rev.initial_cost
+    assert float(jnp.min(rev.gains_history.k_x)) >= 15.9  # projected onto the bounds
+    np.testing.assert_allclose(rev.cost_history, fwd.cost_history, rtol=1e-10)
+    np.testing.assert_allclose(rev.gains_history.k_v, fwd.gains_history.k_v, rtol=1e-10)
+    with pytest.raises(ValueError, match="per_axis"):
+        s.tune(sc, per_axis=True, **kw)
+    with pytest.raises(ValueError, match="structure"):
+        s.tune(sc, (1.0, 1.0), **kw)
