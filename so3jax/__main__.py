@@ -27,7 +27,14 @@ SCENES = {
     "dzhanibekov": ("torque-free spin about the intermediate axis: periodic flips", 20.0),
     "free-body": ("torque-free quadrotor body, generic spin", 10.0),
     "suslov": ("Suslov's nonholonomic body <Omega, a> = 0, J = diag(1, 2, 3)", 20.0),
+    "quadrotor-circle": ("quadrotor on SE(3), DiffTune's circle, control held 2.5 ms", 10.0),
+    "quadrotor-recovery": ("quadrotor recovering from nearly upside down to hover (LLM 2010)", 6.0),
+    "quadrotor-flip": ("quadrotor flip: one vertical loop, upside down at the top", 5.0),
 }
+
+#: Quadrotor scenes: their step defaults to the control period (LGVI does not apply).
+_QUADROTOR = ("quadrotor-circle", "quadrotor-recovery", "quadrotor-flip")
+_QUADROTOR_DT = 0.0025
 
 #: Scenes whose state carries a hybrid controller's memory (LGVI does not apply).
 _WITH_MEMORY = ("unwinding", "hysteresis")
@@ -108,7 +115,11 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"integrator: {', '.join(METHODS)} (case-insensitive; default: RKMK4)",
     )
     parser.add_argument(
-        "--dt", type=_positive_float, default=1e-3, help="step size in seconds (default: 1e-3)"
+        "--dt",
+        type=_positive_float,
+        default=None,
+        help="step size in seconds (default: 1e-3; 0.0025 for the quadrotor scenes, one step "
+        "per control period, which dt must divide)",
     )
     parser.add_argument(
         "--duration",
@@ -162,6 +173,12 @@ def _make_scene(name: str, dtype):
         )
     if name == "suslov":
         return _suslov_scene(dtype)
+    if name == "quadrotor-circle":
+        return scenes.quadrotor_circle(_QUADROTOR_DT, dtype=dtype)
+    if name == "quadrotor-recovery":
+        return scenes.quadrotor_recovery(_QUADROTOR_DT, dtype=dtype)
+    if name == "quadrotor-flip":
+        return scenes.quadrotor_flip(_QUADROTOR_DT, dtype=dtype)
     raise AssertionError(name)
 
 
@@ -279,6 +296,19 @@ def summarize(traj, scene) -> dict:
         below = np.nonzero(psi < 1e-6)[0]
         out["t_Psi_below_1e-6"] = float(t[below[0]]) if below.size else None
         out["max_abs_M"] = float(np.nanmax(M))
+    elif "e_x" in traj.extras:  # a quadrotor
+        e_x = np.linalg.norm(np.asarray(traj.extras["e_x"], dtype=np.float64), axis=-1)[ok]
+        psi = np.asarray(traj.extras["Psi"], dtype=np.float64)[ok]
+        out["rms_position_error"] = float(np.sqrt(np.mean(e_x**2)))
+        out["max_position_error"] = float(e_x.max())
+        out["final_position_error"] = float(e_x[-1])
+        out["Psi_initial"] = float(psi[0])
+        out["Psi_final"] = float(psi[-1])
+        out["max_thrust"] = float(np.max(np.asarray(traj.extras["f"], dtype=np.float64)[ok]))
+        M = np.linalg.norm(np.asarray(traj.M, dtype=np.float64), axis=-1)
+        out["max_abs_M"] = float(np.nanmax(M))
+        up = -np.asarray(traj.R, dtype=np.float64)[ok][:, 2, 2]  # e3 . (-R e3): 1 when level
+        out["min_thrust_axis_up"] = float(up.min())
     elif isinstance(scene, Suslov):
         J = np.asarray(scene.body.inertia, dtype=np.float64)
         Om = np.asarray(traj.Omega, dtype=np.float64)[ok]
@@ -321,6 +351,20 @@ def main(argv=None) -> int:
     if argv[:1] == ["run"]:
         argv = argv[1:]
     args = parser.parse_args(argv)
+    if args.method == "LGVI" and args.scene in _QUADROTOR:
+        parser.error(
+            f"LGVI needs a state (R, Omega) alone; scene {args.scene!r} also carries position "
+            "and velocity (use RKMK4, CG3, CF4, ...)"
+        )
+    if args.dt is None:
+        args.dt = _QUADROTOR_DT if args.scene in _QUADROTOR else 1e-3
+    elif args.scene in _QUADROTOR:
+        ratio = _QUADROTOR_DT / args.dt
+        if abs(ratio - round(ratio)) > 1e-6 * ratio or round(ratio) < 1:
+            parser.error(
+                f"--dt {args.dt:g} must divide the control period {_QUADROTOR_DT:g} s of "
+                f"scene {args.scene!r}"
+            )
     if args.method == "LGVI" and args.scene in _WITH_MEMORY:
         parser.error(
             f"LGVI needs a state (R, Omega) alone; scene {args.scene!r} also carries the "
@@ -375,6 +419,9 @@ def main(argv=None) -> int:
         figs = {"orientation.png": plot.body_axes_figure(traj, title=title)}
         if traj.Rd is not None:
             figs["tracking.png"] = plot.tracking_figure(traj, title=title)
+        elif isinstance(scene, scenes.Quadrotor):
+            figs["quadrotor.png"] = plot.quadrotor_figure(traj, title=title)
+            figs["path.png"] = plot.quadrotor_path(traj, title=title)
         elif isinstance(scene, scenes.Suslov):
             figs["suslov.png"] = plot.suslov_figure(traj, scene, title=title)
         else:

@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-# Figures of a `SweepResult` and a `TuneResult` live in their own module.
+# Figures of a quadrotor run, and of a `SweepResult` and a `TuneResult`, live in
+# their own modules.
+from ._plot_quadrotor import quadrotor_figure as quadrotor_figure, quadrotor_path as quadrotor_path
 from ._plot_sweep import (
     settling_distribution as settling_distribution,
     sweep_heatmaps as sweep_heatmaps,
@@ -31,6 +33,8 @@ __all__ = [
     "settling_distribution",
     "worst_attitudes",
     "tune_figure",
+    "quadrotor_figure",
+    "quadrotor_path",
     "attitude_error",
     "angular_velocity_error",
     "torque",

@@ -151,3 +151,36 @@ def test_suslov_scene(tmp_path, capsys):
     for key in ("max_constraint_residual", "max_rel_change_abs_J_Omega"):
         assert key in printed
     assert (out / "suslov.png").stat().st_size > 10_000
+
+
+def test_quadrotor_scene_end_to_end(tmp_path):
+    # DiffTune's circle, sampled control: the default step is the control period.
+    r = run_cli("--scene", "quadrotor-circle", "--duration", "0.25", "--no-progress", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "so3jax-output"
+    for name in ("quadrotor.png", "path.png", "orientation.png"):
+        assert (out / name).stat().st_size > 10_000
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["dt"] == 0.0025 and summary["n_steps"] == 100
+    assert summary["status"] == "finite to the end"
+    assert 0 < summary["max_position_error"] < 0.5
+    assert summary["max_orthogonality_error"] < 1e-12
+    for key in ("rms_position_error", "Psi_final", "max_thrust"):
+        assert key in r.stdout
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--scene", "quadrotor-flip", "--dt", "0.001"], ["--dt", "must divide", "0.0025"]),
+        (["--scene", "quadrotor-recovery", "--method", "LGVI"], ["LGVI needs"]),
+    ],
+)
+def test_quadrotor_bad_options(args, words, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([*args, "--out", str(tmp_path / "out")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    for w in words:
+        assert w in err
