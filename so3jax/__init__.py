@@ -45,6 +45,7 @@ from ._quadrotor import (
     QuadrotorGains as QuadrotorGains,
     QuadrotorVehicle as QuadrotorVehicle,
     quadrotor_control as quadrotor_control,
+    sweep_quadrotor as sweep_quadrotor,
 )
 from ._simulate import Status as Status, Trajectory as Trajectory, simulate as simulate
 from ._so3 import (
@@ -129,6 +130,7 @@ __all__ = [
     "QuadrotorGains",
     "QuadrotorVehicle",
     "quadrotor_control",
+    "sweep_quadrotor",
     "Status",
     "Trajectory",
     "simulate",

@@ -307,7 +307,7 @@ def summarize(traj, scene) -> dict:
         out["max_thrust"] = float(np.max(np.asarray(traj.extras["f"], dtype=np.float64)[ok]))
         M = np.linalg.norm(np.asarray(traj.M, dtype=np.float64), axis=-1)
         out["max_abs_M"] = float(np.nanmax(M))
-        up = -np.asarray(traj.R, dtype=np.float64)[ok][:, 2, 2]  # e3 . (-R e3): 1 when level
+        up = np.asarray(traj.R, dtype=np.float64)[ok][:, 2, 2]  # (-R e3) . (-e3): 1 when level
         out["min_thrust_axis_up"] = float(up.min())
     elif isinstance(scene, Suslov):
         J = np.asarray(scene.body.inertia, dtype=np.float64)

@@ -316,3 +316,25 @@ def test_tune_general_mode_difftune_short():
         s.tune(sc, per_axis=True, **kw)
     with pytest.raises(ValueError, match="structure"):
         s.tune(sc, (1.0, 1.0), **kw)
+
+
+def test_sweep_quadrotor_gains_by_attitudes_with_upside_down_starts():
+    from so3jax._quadrotor import RECOVERY_R0, quadrotor_recovery
+
+    sc = quadrotor_recovery(control_period=0.01)
+    k = np.asarray(DIFFTUNE_GAINS)
+    gains = jax.vmap(QuadrotorGains)(*[jnp.asarray([v, 1.5 * v]) for v in k])
+    R0 = jnp.stack([jnp.eye(3), s.project(jnp.asarray(RECOVERY_R0)), s.from_euler_zyx(0, 0, 2.0)])
+    out = s.sweep_quadrotor(sc, gains, R0, dt=0.01, n_steps=300, save_every=3)
+    assert out["final_position_error"].shape == (2, 3)
+    assert np.all(out["status_code"] == 0)
+    assert out["min_thrust_axis_up"][0, 0] == pytest.approx(1.0)  # level start stays level
+    assert np.all(out["min_thrust_axis_up"][:, 1] < -0.99)  # the upside-down start ...
+    assert np.all(out["final_psi"][:, 1] < 1e-3)  # ... recovers its attitude in 3 s
+    # a batched run equals the single run
+    sc1 = quadrotor(
+        M_, DIFFTUNE_INERTIA, gains_from(1.5 * G0), sc.reference, R0=R0[2], control_period=0.01
+    )
+    tr = s.simulate(sc1, s.RKMK4(), 0.01, 300, save_every=3)
+    e = np.linalg.norm(np.asarray(tr.extras["e_x"]), axis=-1)
+    np.testing.assert_allclose(out["max_position_error"][1, 2], e.max(), rtol=1e-12)
