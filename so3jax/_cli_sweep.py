@@ -93,6 +93,12 @@ def sweep_parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=_positive(float), default=0.01, help="settling Psi")
     p.add_argument("--save-every", type=int, default=1)
     p.add_argument("--chunk-size", type=int, default=2048, help="runs per chunk")
+    p.add_argument(
+        "--refine",
+        type=int,
+        default=4,
+        help="halvings of --dt allowed to resolve a run that failed numerically (default: 4)",
+    )
     _common(p, "so3jax-sweep", 10.0)
     return p
 
@@ -137,6 +143,8 @@ def sweep_main(argv=None) -> int:
             "chunk-size": args.chunk_size,
         },
     )
+    if args.refine < 0:
+        parser.error(f"--refine must be >= 0, got {args.refine}")
     if args.threshold > 2:
         parser.error(f"--threshold must be in (0, 2], got {args.threshold}")
     n_steps = _n_steps(args, parser)
@@ -175,6 +183,7 @@ def sweep_main(argv=None) -> int:
             omega0_std=args.omega0_std,
             threshold=args.threshold,
             weights=CostWeights(args.w_psi, args.w_omega, args.w_effort),
+            refine=args.refine,
             chunk_size=args.chunk_size,
             results_dir=out / "chunks",
             progress=not args.quiet,
@@ -199,8 +208,10 @@ def sweep_main(argv=None) -> int:
         fig.savefig(out / name, dpi=110)
         plt.close(fig)
     best = summary["best"]
+    print(result.summary_table())
     print(
-        f"{summary['n_runs']} runs in {seconds:.1f} s ({summary['diverged_runs']} diverged); "
+        f"{summary['n_runs']} runs in {seconds:.1f} s ({summary['runs_per_second']:.0f} runs/s; "
+        f"{summary['numerical_runs']} numerical, {summary['diverged_runs']} diverged); "
         f"best mean cost {best['mean_cost']:.4g} at k_R = {best['k_R']:.3g}, "
         f"k_Omega = {best['k_Omega']:.3g} (median settling {best['median_settling_time']:.3g} s)"
     )

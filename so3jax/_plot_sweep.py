@@ -18,47 +18,93 @@ def _grid_axes(result):
 
 
 def sweep_heatmaps(result):
-    """Heat maps over ``(k_R, k_Omega)``: median settling time and failure fraction.
+    """Heat maps over ``(k_R, k_Omega)``: settling time, failures, and the stable step.
 
-    Cells whose runs all diverged are hatched grey; a cell whose median is
-    ``inf`` (fewer than half the runs settled) is drawn at the top of the scale.
+    Left: median settling time; cells whose runs all failed (diverged or
+    unresolved) are grey, a cell whose median is ``inf`` (fewer than half the
+    runs settled) is drawn at the top of the scale. Middle: the fraction of runs
+    that did not settle; cells marked ``x`` hold runs whose closed loop
+    diverged, ``o`` runs that failed only numerically (resolved at a smaller
+    step), ``?`` unresolved runs. Right: the largest step known to be stable for
+    each cell (`so3jax.stable_dt`), with the cells past the sweep's ``dt``
+    outlined: there the runs were re-run at smaller steps.
 
     **Arguments:**
 
     - `result`: a `SweepResult` of a grid sweep.
 
-    **Returns:** a `Figure` with two panels.
+    **Returns:** a `Figure` with three panels.
     """
     import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
 
     kR, kO = _grid_axes(result)
     med = result.as_grid(result.median_settling_time)
     fail = result.as_grid(result.failure_fraction)
     horizon = result.dt * result.n_steps
     med_shown = np.where(np.isinf(med), horizon, med)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6), constrained_layout=True)
+    stable = result.as_grid(result.stable_dt)
+    finite = np.isfinite(stable)
+    lo = float(np.min(stable[finite])) if finite.any() else result.dt / 2
+    hi = float(np.max(stable[finite])) if finite.any() else result.dt * 2
+    lo, hi = min(lo, result.dt) * 0.9, max(hi, result.dt) * 1.1
     panels = (
-        (med_shown, "median settling time (s)", "viridis", 0.0, horizon),
-        (fail, "failure fraction (diverged or not settled)", "magma", 0.0, 1.0),
+        (med_shown, "median settling time (s)", "viridis", dict(vmin=0.0, vmax=horizon)),
+        (fail, "fraction not settled (any reason)", "magma", dict(vmin=0.0, vmax=1.0)),
+        (stable, "largest stable dt (s), linearised", "cividis", dict(norm=LogNorm(lo, hi))),
     )
-    for ax, (val, title, cmap, vmin, vmax) in zip(axes, panels, strict=True):
+    for ax, (val, title, cmap, scale) in zip(axes, panels, strict=True):
         cm = plt.get_cmap(cmap).with_extremes(bad="0.75")
-        m = ax.pcolormesh(
-            _edges(kO), _edges(kR), np.ma.masked_invalid(val), cmap=cm, vmin=vmin, vmax=vmax
-        )
+        m = ax.pcolormesh(_edges(kO), _edges(kR), np.ma.masked_invalid(val), cmap=cm, **scale)
         fig.colorbar(m, ax=ax)
         ax.set_xscale("log" if _is_geometric(kO) else "linear")
         ax.set_yscale("log" if _is_geometric(kR) else "linear")
         ax.set_xlabel("k_Omega")
         ax.set_ylabel("k_R")
         ax.set_title(title, fontsize=10)
+    KO, KR = np.meshgrid(kO, kR)
+    marks = (
+        (result.diverged, "x", "r", "closed loop diverged"),
+        (result.numerical, "o", "c", "numerical (resolved at smaller dt)"),
+        (result.unresolved, "$?$", "y", "unresolved"),
+    )
+    for flag, marker, color, label in marks:
+        cells = result.as_grid(flag.any(axis=1))
+        if cells.any():
+            axes[1].scatter(
+                KO[cells],
+                KR[cells],
+                marker=marker,
+                s=28,
+                facecolors="none" if marker == "o" else color,
+                edgecolors=color,
+                linewidths=1.2,
+                label=label,
+            )
+    beyond = result.as_grid(result.dt > result.stable_dt)
+    if beyond.any():
+        axes[2].scatter(
+            KO[beyond],
+            KR[beyond],
+            marker="s",
+            s=30,
+            facecolors="none",
+            edgecolors="r",
+            label=f"dt = {result.dt:g} past the limit",
+        )
+        axes[2].legend(loc="lower right", fontsize=7)
     b = result.best()
-    for ax in axes:
+    for ax in axes[:2]:
         ax.plot(result.k_Omega[b], result.k_R[b], "w*", ms=12, mec="k", label="lowest mean cost")
     axes[0].legend(loc="lower right", fontsize=8)
+    axes[1].legend(loc="lower right", fontsize=7)
     n = result.R0.shape[0]
+    c = result.outcome_counts()
     fig.suptitle(
-        f"{n} random attitudes per cell, horizon {horizon:g} s, Psi < {result.threshold:g}",
+        f"{n} random attitudes per cell, horizon {horizon:g} s, Psi < {result.threshold:g}, "
+        f"dt = {result.dt:g}: {c['numerical']} runs numerical, {c['diverged']} diverged, "
+        f"{c['unresolved']} unresolved; dt <= {result.dt_stable_all:.3g} is stable for every cell",
         fontsize=10,
     )
     return fig
@@ -86,7 +132,7 @@ def _edges(x):
 
 
 def settling_distribution(result, gains=None, bins: int = 30):
-    """Histograms of the settling time for a few gain pairs (diverged runs left out).
+    """Histograms of the settling time for a few gain pairs (failed runs left out).
 
     **Arguments:**
 
@@ -108,11 +154,12 @@ def settling_distribution(result, gains=None, bins: int = 30):
     fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
     edges = np.linspace(0.0, horizon, bins + 1)
     for g in gains:
-        t = result.settling_time[g][~result.diverged[g]]
+        t = result.settling_time[g][~result.failed[g]]
         unsettled = int(np.sum(~np.isfinite(t)))
         label = (
             f"k_R={_fmt(result.k_R[g])}, k_Omega={_fmt(result.k_Omega[g])} "
-            f"({unsettled} unsettled, {int(result.diverged[g].sum())} diverged)"
+            f"({unsettled} unsettled, {int(result.numerical[g].sum())} numerical, "
+            f"{int(result.diverged[g].sum())} diverged)"
         )
         ax.hist(t[np.isfinite(t)], bins=edges, histtype="step", lw=1.6, label=label)
     ax.set_xlabel("settling time (s)")
@@ -150,7 +197,7 @@ def worst_attitudes(result, g: int | None = None, n_worst: int = 5):
 
     g = result.best() if g is None else int(g)
     axis, angle = (np.asarray(a) for a in to_axis_angle(result.R0))
-    t = np.where(result.diverged[g], np.nan, result.settling_time[g])
+    t = np.where(result.failed[g], np.nan, result.settling_time[g])
     horizon = result.dt * result.n_steps
     shown = np.where(np.isinf(t), horizon, t)
     lon = np.degrees(np.arctan2(axis[:, 1], axis[:, 0]))

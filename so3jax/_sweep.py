@@ -12,6 +12,14 @@ it stopped.
 Attitude ``i`` is drawn from ``jax.random.fold_in(key, i)``: it does not depend
 on the number of attitudes, and every gain pair sees the same attitudes (common
 random numbers, so differences between gains are not sampling noise).
+
+A run that stops being finite is re-run, right after its chunk, at a smaller
+step known to be stable for its gains (`so3jax.stable_dt`; halvings of ``dt``
+with the saved points at the same times). It then ends in one of three
+classes: *numerical* (finite at the smaller step: the statistics come from that
+run), *diverged* (it fails at a step known to be stable: the closed loop
+itself diverges) or *unresolved* (the stable step needs more halvings than
+`refine` allows).
 """
 
 from __future__ import annotations
@@ -22,6 +30,8 @@ import hashlib
 import json
 import math
 import os
+import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -34,6 +44,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ._integrators import RKMK4, AbstractLieSolver
 from ._simulate import OK, _check_int, simulate
 from ._so3 import random_rotation
+from ._stability import SAFETY, stable_dt
 from ._tune import (
     CostWeights,
     _check_tracking_scene,
@@ -44,17 +55,36 @@ from ._tune import (
 )
 from ._types import Array
 
+#: Per-run statistics, taken from the run that resolved a failure.
+STAT_FIELDS = ("final_psi", "settling_time", "peak_torque", "cost")
 #: Per-run fields of a `SweepResult`, as stored in the chunk files.
-RUN_FIELDS = ("final_psi", "settling_time", "peak_torque", "cost", "status_code", "fail_step")
+RUN_FIELDS = STAT_FIELDS + ("status_code", "fail_step", "outcome", "run_dt")
+
+#: Outcome codes of a run (`SweepResult.outcome`): finite at the requested step;
+#: failed there and resolved at a smaller stable step; failed at a step known to be
+#: stable (the closed loop diverged); failed, and no stable step within the budget.
+FINITE, NUMERICAL, DIVERGED, UNRESOLVED = 0, 1, 2, 3
+OUTCOMES = {
+    FINITE: "finite at dt",
+    NUMERICAL: "numerical (resolved at a smaller step)",
+    DIVERGED: "diverged (closed loop)",
+    UNRESOLVED: "unresolved (no stable step within the refinement budget)",
+}
 
 
 @dataclasses.dataclass(frozen=True)
 class SweepResult:
     """Per-run results and per-gain statistics of a `sweep`.
 
-    Runs are indexed ``[g, i]``: gain pair ``g``, initial attitude ``i``.
-    Statistics ignore diverged runs (status code != 0); a gain pair whose
-    runs all diverged has NaN statistics and a failure fraction of 1.
+    Runs are indexed ``[g, i]``: gain pair ``g``, initial attitude ``i``. Each
+    run ends in one of four outcomes: *settled* (``Psi < threshold`` for good
+    within the horizon), *not settled*, *diverged* (the closed loop fails at a
+    step known to be stable) or *numerical* (it failed only because ``dt``
+    exceeded the method's stability limit, and was resolved at a smaller step;
+    it then also settled or not). A failed run whose stable step needs more
+    halvings than the refinement budget is *unresolved*. Statistics leave out
+    diverged and unresolved runs; a gain pair whose runs all failed has NaN
+    statistics and a failure fraction of 1.
 
     **Fields:**
 
@@ -64,11 +94,19 @@ class SweepResult:
     - `R0`: initial attitudes, shape `(N, 3, 3)`; `Omega0`: rates, `(N, 3)`.
     - `final_psi`: ``Psi(R, Rd)`` at the end, shape `(G, N)`.
     - `settling_time`: first saved time after which ``Psi < threshold`` for
-      good, shape `(G, N)`; ``inf`` if it never settles, NaN if it diverged.
+      good, shape `(G, N)`; ``inf`` if it never settles, NaN if it failed.
     - `peak_torque`: ``max |M|`` over the saved points, shape `(G, N)`.
     - `cost`: `tracking_cost` of the run, shape `(G, N)`.
-    - `status_code`, `fail_step`: the run's `Status`, shape `(G, N)`.
-    - `threshold`, `dt`, `n_steps`, `save_every`: the settings.
+    - `status_code`, `fail_step`: the `Status` of the run at the requested
+      ``dt``, shape `(G, N)`.
+    - `outcome`: 0 finite at ``dt``, 1 numerical, 2 diverged, 3 unresolved,
+      shape `(G, N)` (see `numerical`, `diverged`, `unresolved`).
+    - `run_dt`: the step of the run the statistics come from (``dt``, or the
+      smaller step that resolved or confirmed a failure; NaN if unresolved),
+      shape `(G, N)`.
+    - `stable_dt`: the largest step known to be stable for each gain pair
+      (`so3jax.stable_dt`), shape `(G,)`.
+    - `threshold`, `dt`, `n_steps`, `save_every`, `refine`: the settings.
     """
 
     k_R: np.ndarray
@@ -82,27 +120,59 @@ class SweepResult:
     cost: np.ndarray
     status_code: np.ndarray
     fail_step: np.ndarray
+    outcome: np.ndarray
+    run_dt: np.ndarray
+    stable_dt: np.ndarray
     threshold: float
     dt: float
     n_steps: int
     save_every: int
+    refine: int
 
     @property
     def diverged(self) -> np.ndarray:
-        """Runs that stopped being finite (or whose solver failed), shape `(G, N)`."""
-        return self.status_code != OK
+        """Runs whose closed loop diverged (they failed at a step known to be stable), `(G, N)`."""
+        return self.outcome == DIVERGED
+
+    @property
+    def numerical(self) -> np.ndarray:
+        """Runs that failed only numerically (step past the stability limit), `(G, N)`.
+
+        They were resolved at the smaller step `run_dt`; their statistics come from there.
+        """
+        return self.outcome == NUMERICAL
+
+    @property
+    def unresolved(self) -> np.ndarray:
+        """Runs that failed at ``dt`` with no stable step within `refine` halvings, `(G, N)`."""
+        return self.outcome == UNRESOLVED
+
+    @property
+    def failed(self) -> np.ndarray:
+        """Runs with no statistics: diverged or unresolved, shape `(G, N)`."""
+        return self.diverged | self.unresolved
 
     @property
     def settled(self) -> np.ndarray:
-        """Runs that stayed finite and settled within the horizon, shape `(G, N)`."""
-        return ~self.diverged & np.isfinite(self.settling_time)
+        """Runs (numerical ones included) that settled within the horizon, shape `(G, N)`."""
+        return ~self.failed & np.isfinite(self.settling_time)
+
+    @property
+    def not_settled(self) -> np.ndarray:
+        """Runs that stayed finite (at ``dt`` or after refinement) but did not settle, `(G, N)`."""
+        return ~self.failed & ~np.isfinite(self.settling_time)
+
+    @property
+    def dt_stable_all(self) -> float:
+        """A step stable for every gain pair of the sweep (the smallest `stable_dt`)."""
+        return float(np.min(self.stable_dt))
 
     def _masked(self, values: np.ndarray) -> np.ndarray:
-        return np.where(self.diverged, np.nan, values)
+        return np.where(self.failed, np.nan, values)
 
     @property
     def median_settling_time(self) -> np.ndarray:
-        """Median settling time per gain pair over non-diverged runs, shape `(G,)`.
+        """Median settling time per gain pair over runs with statistics, shape `(G,)`.
 
         Runs that never settle count as ``inf`` (a censored sample: the median
         is exact while fewer than half are censored, ``inf`` otherwise).
@@ -110,34 +180,39 @@ class SweepResult:
         return _nan_reduce(np.nanmedian, self._masked(self.settling_time))
 
     def settling_quantile(self, q: float) -> np.ndarray:
-        """Quantile ``q`` of the settling time per gain pair (non-diverged runs), `(G,)`."""
+        """Quantile ``q`` of the settling time per gain pair (runs with statistics), `(G,)`."""
         return _nan_reduce(
             lambda a, axis: np.nanquantile(a, q, axis=axis), self._masked(self.settling_time)
         )
 
     @property
     def failure_fraction(self) -> np.ndarray:
-        """Fraction of runs per gain pair that diverged or did not settle, shape `(G,)`."""
+        """Fraction of runs per gain pair that did not settle (for any reason), shape `(G,)`."""
         return 1.0 - self.settled.mean(axis=1)
 
     @property
     def diverged_fraction(self) -> np.ndarray:
-        """Fraction of runs per gain pair that diverged, shape `(G,)`."""
+        """Fraction of runs per gain pair whose closed loop diverged, shape `(G,)`."""
         return self.diverged.mean(axis=1)
 
     @property
+    def numerical_fraction(self) -> np.ndarray:
+        """Fraction of runs per gain pair that failed only numerically, shape `(G,)`."""
+        return self.numerical.mean(axis=1)
+
+    @property
     def mean_cost(self) -> np.ndarray:
-        """Mean tracking cost per gain pair over non-diverged runs, shape `(G,)`."""
+        """Mean tracking cost per gain pair over runs with statistics, shape `(G,)`."""
         return _nan_reduce(np.nanmean, self._masked(self.cost))
 
     @property
     def mean_final_psi(self) -> np.ndarray:
-        """Mean final ``Psi`` per gain pair over non-diverged runs, shape `(G,)`."""
+        """Mean final ``Psi`` per gain pair over runs with statistics, shape `(G,)`."""
         return _nan_reduce(np.nanmean, self._masked(self.final_psi))
 
     @property
     def max_peak_torque(self) -> np.ndarray:
-        """Largest peak torque per gain pair over non-diverged runs, shape `(G,)`."""
+        """Largest peak torque per gain pair over runs with statistics, shape `(G,)`."""
         return _nan_reduce(np.nanmax, self._masked(self.peak_torque))
 
     def as_grid(self, values: np.ndarray) -> np.ndarray:
@@ -156,20 +231,44 @@ class SweepResult:
         return int(np.argmin(values))
 
     def worst_attitudes(self, g: int, n: int = 5) -> np.ndarray:
-        """Indices of the ``n`` slowest initial attitudes for gain pair ``g`` (diverged first)."""
-        t = np.where(self.diverged[g], np.inf, self.settling_time[g])
+        """Indices of the ``n`` slowest initial attitudes for gain pair ``g`` (failed first)."""
+        t = np.where(self.failed[g], np.inf, self.settling_time[g])
         return np.argsort(-np.nan_to_num(t, posinf=np.finfo(float).max), kind="stable")[:n]
 
+    def outcome_counts(self) -> dict:
+        """Runs per outcome: settled, not settled, numerical, diverged, unresolved.
+
+        Numerical runs are also counted as settled or not settled (from their
+        resolved run), so the first two and the last two add up to all runs.
+        """
+        return {
+            "settled": int(self.settled.sum()),
+            "not_settled": int(self.not_settled.sum()),
+            "numerical": int(self.numerical.sum()),
+            "diverged": int(self.diverged.sum()),
+            "unresolved": int(self.unresolved.sum()),
+        }
+
     def summary(self) -> dict:
-        """A JSON-ready summary: per-gain statistics and the best gain pair."""
+        """A JSON-ready summary: outcome counts, the stable step, and the best gain pair."""
         b = self.best()
+        counts = self.outcome_counts()
+        resolved = np.unique(self.run_dt[self.numerical])
+        beyond = self.dt > self.stable_dt
         return {
             "n_gains": int(self.k_R.shape[0]),
             "n_attitudes": int(self.R0.shape[0]),
             "n_runs": int(self.cost.size),
             "threshold": self.threshold,
             "horizon": self.dt * self.n_steps,
-            "diverged_runs": int(self.diverged.sum()),
+            "dt": self.dt,
+            "outcomes": counts,
+            "diverged_runs": counts["diverged"],
+            "numerical_runs": counts["numerical"],
+            "unresolved_runs": counts["unresolved"],
+            "numerical_resolved_at_dt": [float(v) for v in resolved],
+            "stable_dt_all_gains": self.dt_stable_all,
+            "gains_beyond_stable_dt": int(beyond.sum()),
             "failure_fraction_overall": float(1.0 - self.settled.mean()),
             "best": {
                 "k_R": np.asarray(self.k_R[b]).tolist(),
@@ -179,6 +278,35 @@ class SweepResult:
                 "failure_fraction": float(self.failure_fraction[b]),
             },
         }
+
+    def summary_table(self) -> str:
+        """The outcome counts and the stable step as a short text table."""
+        n = self.cost.size
+        c = self.outcome_counts()
+        resolved = ", ".join(f"{v:.3g}" for v in np.unique(self.run_dt[self.numerical]))
+        rows = [
+            (
+                "settled",
+                c["settled"],
+                f"Psi < {self.threshold:g} within {self.dt * self.n_steps:g} s",
+            ),
+            ("not settled", c["not_settled"], "finite, did not settle within the horizon"),
+            (
+                "numerical",
+                c["numerical"],
+                f"failed at dt = {self.dt:g}, resolved at dt = {resolved}" if resolved else "-",
+            ),
+            ("diverged", c["diverged"], "the closed loop failed at a stable step"),
+            ("unresolved", c["unresolved"], f"no stable step within {self.refine} halvings"),
+        ]
+        lines = [f"{'outcome':<12} {'runs':>8} {'share':>7}  note"]
+        lines += [f"{k:<12} {v:>8d} {v / n:>7.1%}  {note}" for k, v, note in rows]
+        beyond = int(np.sum(self.dt > self.stable_dt))
+        lines.append(
+            f"dt = {self.dt:g} is beyond the stability limit for {beyond} of "
+            f"{self.stable_dt.size} gain pairs; dt <= {self.dt_stable_all:.3g} is stable for all"
+        )
+        return "\n".join(lines)
 
     def save(self, path: str | os.PathLike) -> None:
         """Write everything to one ``.npz`` file (see `load`)."""
@@ -192,10 +320,16 @@ class SweepResult:
         """Read a file written by `save`."""
         with np.load(path) as z:
             d = {k: z[k] for k in z.files}
+        missing = [f.name for f in dataclasses.fields(cls) if f.name not in d]
+        if missing:
+            raise ValueError(
+                f"{path} was written by an older so3jax (no {', '.join(missing)}): it cannot "
+                "tell numerical failures from divergence; run the sweep again"
+            )
         gs = tuple(int(v) for v in d.pop("grid_shape"))
         for name in ("threshold", "dt"):
             d[name] = float(d[name])
-        for name in ("n_steps", "save_every"):
+        for name in ("n_steps", "save_every", "refine"):
             d[name] = int(d[name])
         return cls(grid_shape=None if gs == (-1, -1) else gs, **d)
 
@@ -308,7 +442,7 @@ def _draw(key, Omega0, omega0_std, n: int):
     return R0, Omega0 + omega0_std * noise
 
 
-def _gain_pairs(k_R, k_Omega, grid: bool):
+def _gain_pairs(k_R, k_Omega, grid: bool, allow_negative: bool = False):
     k_R = np.asarray(k_R, dtype=np.float64)
     k_O = np.asarray(k_Omega, dtype=np.float64)
     for k, name in ((k_R, "k_R"), (k_O, "k_Omega")):
@@ -316,8 +450,13 @@ def _gain_pairs(k_R, k_Omega, grid: bool):
             raise ValueError(
                 f"{name} must have shape (n,) (scalar gains) or (n, 3) (per-axis), got {k.shape}"
             )
-        if not np.all(np.isfinite(k)) or np.any(k < 0):
-            raise ValueError(f"{name} must be finite and >= 0")
+        if not np.all(np.isfinite(k)):
+            raise ValueError(f"{name} must be finite")
+        if np.any(k < 0) and not allow_negative:
+            raise ValueError(
+                f"{name} must be >= 0 (negative gains destabilise the loop; pass "
+                "allow_negative_gains=True to sweep them on purpose)"
+            )
     if grid:
         if k_R.ndim != 1 or k_O.ndim != 1:
             raise ValueError("a grid sweep takes 1-D k_R and k_Omega; pass grid=False for pairs")
@@ -358,6 +497,9 @@ def sweep(
     omega0_std: float = 0.0,
     threshold: float = 0.01,
     weights: CostWeights | None = None,
+    refine: int = 4,
+    safety: float = SAFETY,
+    allow_negative_gains: bool = False,
     chunk_size: int = 1024,
     results_dir: str | os.PathLike | None = None,
     overwrite: bool = False,
@@ -376,7 +518,13 @@ def sweep(
     finished chunk is saved at once (``chunk_NNNNN.npz``, written atomically)
     and a later call with the same arguments loads it instead of running it
     again: an interrupted sweep resumes where it stopped. A run that diverges
-    is flagged (`SweepResult.diverged`) and left out of the statistics.
+    is re-run right after its chunk at a step known to be stable for its gains
+    (`stable_dt`, reached by halving ``dt`` with the saved points at the same
+    times): if it is finite there it failed only numerically
+    (`SweepResult.numerical`, statistics from that run), if it fails there the
+    closed loop diverged (`SweepResult.diverged`, left out of the statistics).
+    A `warnings.warn` says up front when ``dt`` is past the limit for some gains
+    and which ``dt`` would be stable for all.
 
     **Arguments:**
 
@@ -393,12 +541,19 @@ def sweep(
       to the scene's ``Omega0``.
     - `threshold`: settling threshold on ``Psi = 1 - cos(angle)`` (0.01: 8.1 degrees).
     - `weights`: `CostWeights` of the integrated cost.
+    - `refine`: at most this many halvings of ``dt`` to resolve a failed run
+      (0: none; a failure is then diverged if ``dt`` is known stable, unresolved
+      if not). A failure at a step known to be stable is confirmed once at half
+      that step before it counts as diverged.
+    - `safety`: factor on the linearised step limit (`stable_dt`).
+    - `allow_negative_gains`: accept negative gains (a destabilising sign, on
+      purpose); otherwise they raise ``ValueError``.
     - `chunk_size`: runs per chunk (rounded up to a multiple of the device count).
     - `results_dir`: folder for the chunk files (created; ``None``: keep in memory).
     - `overwrite`: discard chunk files of a different sweep in `results_dir`
       instead of raising.
     - `devices`: devices to shard each chunk over (default: all, `jax.devices()`).
-    - `progress`: show a tqdm progress bar over chunks.
+    - `progress`: show a tqdm progress bar over runs (runs/s, ETA, outcome counts).
     - `on_chunk`: called as ``on_chunk(index, n_chunks)`` after each chunk is computed
       (and saved).
     - `scalarize`: step each chunk as a program over scalar components
@@ -428,14 +583,20 @@ def sweep(
     omega0_std = float(omega0_std)
     if not (math.isfinite(omega0_std) and omega0_std >= 0):
         raise ValueError(f"omega0_std must be >= 0, got {omega0_std}")
+    refine = _check_int(refine, "refine", 0)
+    safety = float(safety)
+    if not (0 < safety <= 1):
+        raise ValueError(f"safety must be in (0, 1], got {safety}")
     key = _as_key(key)
     devices = list(jax.devices() if devices is None else devices)
     if not devices:
         raise ValueError("devices must not be empty")
 
     dtype = scene.y0.R.dtype
-    kr, ko, grid_shape = _gain_pairs(k_R, k_Omega, grid)
+    kr, ko, grid_shape = _gain_pairs(k_R, k_Omega, grid, bool(allow_negative_gains))
     G = kr.shape[0]
+    dt_stable = stable_dt(method, np.asarray(scene.body.inertia), kr, ko, safety)
+    _warn_step(method, dt, dt_stable, ko, refine)
     R0, W0 = initial_states(key, n_att, omega0_std, dtype, scene.y0.x[:3])
     R0, W0 = np.asarray(R0), np.asarray(W0)
     n_runs = G * n_att
@@ -458,6 +619,9 @@ def sweep(
             "threshold": threshold,
             "weights": [float(weights.psi), float(weights.omega), float(weights.effort)],
             "chunk": chunk,
+            "refine": refine,
+            "safety": safety,
+            "format": 2,  # chunk files carry outcome and run_dt
         }
         folder = _prepare_folder(Path(results_dir), _fingerprint(config, scene, method), overwrite)
 
@@ -465,42 +629,71 @@ def sweep(
     sharding = NamedSharding(mesh, PartitionSpec("batch"))
     g_idx = np.arange(n_runs) // n_att
     i_idx = np.arange(n_runs) % n_att
+
+    def run(rows, level: int, size: int) -> dict:
+        """Runs ``rows`` (padded to ``size`` by repeating the last) at ``dt / 2**level``."""
+        rows = np.concatenate([rows, np.full(size - rows.size, rows[-1])])
+        args = (
+            kr[g_idx[rows]].astype(dtype),
+            ko[g_idx[rows]].astype(dtype),
+            R0[i_idx[rows]],
+            W0[i_idx[rows]],
+        )
+        args = [_sharded(a, sharding) for a in args]
+        f = 2**level
+        out = _run_chunk(
+            scene,
+            method,
+            dt / f,
+            n_steps * f,
+            save_every * f,
+            threshold,
+            weights,
+            *args,
+            bool(scalarize),
+        )
+        return _to_host(out)
+
     parts: list[dict] = []
     bar = None
+    counts = {"numerical": 0, "diverged": 0, "unresolved": 0}
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=n_chunks, desc="sweep", unit="chunk")
+        bar = tqdm(total=n_runs, desc="sweep", unit="run", smoothing=0.1)
+    t_start, computed = time.perf_counter(), 0
     try:
         for c in range(n_chunks):
             lo, hi = c * chunk, min((c + 1) * chunk, n_runs)
             path = None if folder is None else folder / f"chunk_{c:05d}.npz"
-            if path is not None and path.exists():
-                parts.append(_load_chunk(path, hi - lo))
-                if bar is not None:
-                    bar.update(1)
-                continue
-            # Pad the last chunk by repeating its last run: one compiled shape for all.
-            rows = np.minimum(np.arange(lo, lo + chunk), n_runs - 1)
-            args = (
-                kr[g_idx[rows]].astype(dtype),
-                ko[g_idx[rows]].astype(dtype),
-                R0[i_idx[rows]],
-                W0[i_idx[rows]],
-            )
-            args = [_sharded(a, sharding) for a in args]
-            out = _run_chunk(
-                scene, method, dt, n_steps, save_every, threshold, weights, *args, bool(scalarize)
-            )
-            out = {k: v[: hi - lo] for k, v in _to_host(out).items()}
-            if path is not None and jax.process_index() == 0:
-                tmp = path.with_name(path.stem + ".tmp.npz")
-                np.savez(tmp, **out)
-                os.replace(tmp, path)
+            loaded = path is not None and path.exists()
+            if loaded:
+                out = _load_chunk(path, hi - lo)
+            else:
+                # Pad the last chunk by repeating its last run: one compiled shape for all.
+                out = run(np.arange(lo, hi), 0, chunk)
+                out = {k: v[: hi - lo] for k, v in out.items()}
+                out = _resolve(
+                    out, np.arange(lo, hi), g_idx[lo:hi], dt, dt_stable, refine, chunk, n_dev, run
+                )
+                if path is not None and jax.process_index() == 0:
+                    tmp = path.with_name(path.stem + ".tmp.npz")
+                    np.savez(tmp, **out)
+                    os.replace(tmp, path)
+                computed += hi - lo
             parts.append(out)
+            for name, code in (
+                ("numerical", NUMERICAL),
+                ("diverged", DIVERGED),
+                ("unresolved", UNRESOLVED),
+            ):
+                counts[name] += int(np.sum(out["outcome"] == code))
             if bar is not None:
-                bar.update(1)
-            if on_chunk is not None:
+                elapsed = time.perf_counter() - t_start
+                rate = computed / elapsed if elapsed > 0 else 0.0
+                bar.set_postfix({"runs/s": f"{rate:.0f}", **counts}, refresh=False)
+                bar.update(hi - lo)
+            if on_chunk is not None and not loaded:
                 on_chunk(c, n_chunks)
     finally:
         if bar is not None:
@@ -513,12 +706,89 @@ def sweep(
         grid_shape=grid_shape,
         R0=R0,
         Omega0=W0,
+        stable_dt=dt_stable,
         threshold=threshold,
         dt=dt,
         n_steps=n_steps,
         save_every=save_every,
+        refine=refine,
         **runs,
     )
+
+
+def _warn_step(method, dt: float, dt_stable: np.ndarray, k_Omega: np.ndarray, refine: int):
+    """Warn when ``dt`` is past the method's stability limit for some gain pairs."""
+    beyond = dt > dt_stable
+    if not beyond.any():
+        return
+    k_O = np.asarray(k_Omega).reshape(len(k_Omega), -1).max(axis=1)
+    need = _levels_to_stable(dt, dt_stable)
+    over = need > refine
+    budget = (
+        f"; {int(over.sum())} of them need more than {refine} halvings (refine), and their "
+        "failures will be reported unresolved"
+        if over.any()
+        else ""
+    )
+    warnings.warn(
+        f"dt = {dt:g} is beyond the stability limit of {method.name} for {int(beyond.sum())} "
+        f"of {beyond.size} gain pairs (k_Omega >= {k_O[beyond].min():.3g}, linearised closed "
+        f"loop): runs that fail there are re-run at smaller steps and reported as numerical"
+        f"{budget}. dt <= {np.min(dt_stable):.3g} is stable for every pair.",
+        stacklevel=3,
+    )
+
+
+def _levels_to_stable(dt: float, dt_stable: np.ndarray) -> np.ndarray:
+    """Smallest ``m >= 0`` with ``dt / 2**m <= dt_stable`` (a large number if unknown)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m = np.ceil(np.log2(dt / dt_stable) - 1e-12)
+    return np.where(np.isnan(m), 10**6, np.maximum(m, 0)).astype(np.int64)
+
+
+def _bucket(n: int, chunk: int, n_dev: int) -> int:
+    """A padded batch size for ``n`` re-runs: a power of two (few compiled shapes),
+    a multiple of the device count, at most the chunk."""
+    b = min(chunk, 1 << max(0, (n - 1).bit_length()))
+    return min(chunk, -(-b // n_dev) * n_dev)
+
+
+def _resolve(out: dict, rows, g, dt, dt_stable, refine: int, chunk: int, n_dev: int, run):
+    """Classify the runs of a chunk; re-run the failed ones at smaller, stable steps.
+
+    A failed run goes to level ``m = max(1, m0)``, ``m0`` the halvings that make
+    the step known to be stable for its gains (unknown stability: every level in
+    turn). Finite there: numerical, its statistics replaced. Failed at a known
+    stable step: diverged. Past ``refine`` halvings: unresolved.
+    """
+    n = rows.size
+    failed = out["status_code"] != OK
+    outcome = np.where(failed, UNRESOLVED, FINITE).astype(np.int32)
+    run_dt = np.where(failed, np.nan, dt)
+    out = {k: np.array(v) for k, v in out.items()}
+    stable = dt_stable[g]
+    m0 = _levels_to_stable(dt, stable)
+    if refine == 0:
+        hit = failed & (m0 == 0)
+        outcome[hit], run_dt[hit] = DIVERGED, dt
+    pending = np.flatnonzero(failed) if refine > 0 else np.zeros(0, int)
+    for level in range(1, refine + 1):
+        sel = pending[np.maximum(m0[pending], 1) <= level]
+        if sel.size == 0:
+            continue
+        dt_level = dt / 2**level
+        res = run(rows[sel], level, _bucket(sel.size, chunk, n_dev))
+        res = {k: v[: sel.size] for k, v in res.items()}
+        ok = res["status_code"] == OK
+        for k in STAT_FIELDS:
+            out[k][sel[ok]] = res[k][ok]
+        outcome[sel[ok]], run_dt[sel[ok]] = NUMERICAL, dt_level
+        div = ~ok & (dt_level <= stable[sel])
+        outcome[sel[div]], run_dt[sel[div]] = DIVERGED, dt_level
+        pending = np.setdiff1d(pending, sel[ok | div])
+    out["outcome"], out["run_dt"] = outcome, run_dt
+    assert all(v.shape[0] == n for v in out.values())
+    return out
 
 
 def _prepare_folder(folder: Path, fingerprint: str, overwrite: bool) -> Path:
@@ -530,7 +800,8 @@ def _prepare_folder(folder: Path, fingerprint: str, overwrite: bool) -> Path:
             return folder
         if not overwrite:
             raise ValueError(
-                f"results_dir {str(folder)!r} holds the chunks of a different sweep; "
+                f"results_dir {str(folder)!r} holds the chunks of a different sweep (or of "
+                "an older so3jax); "
                 "use another folder, or overwrite=True to discard them"
             )
     for stale in folder.glob("chunk_*.npz"):
@@ -542,6 +813,12 @@ def _prepare_folder(folder: Path, fingerprint: str, overwrite: bool) -> Path:
 
 def _load_chunk(path: Path, n: int) -> dict:
     with np.load(path) as z:
+        missing = [k for k in RUN_FIELDS if k not in z.files]
+        if missing:
+            raise ValueError(
+                f"{path} was written by an older so3jax (no {', '.join(missing)}); "
+                "use another results_dir, or delete its chunk files to recompute them"
+            )
         out = {k: z[k] for k in RUN_FIELDS}
     if any(v.shape[0] != n for v in out.values()):
         raise ValueError(f"{path} has the wrong number of runs; delete it to recompute it")

@@ -17,11 +17,24 @@ from so3jax import _plot_sweep as plots
 from so3jax._cli_sweep import sweep_main, tune_main
 
 matplotlib.use("Agg")
+# k_Omega = 1e3 is past the step limit on purpose: the warning is tested in test_sweep_outcomes.
+pytestmark = pytest.mark.filterwarnings("ignore:dt = .* is beyond the stability limit")
 
 K_R = [2.0, 8.81]
-K_OMEGA = [1.0, 2.54, 1e3]  # k_Omega = 1e3 is far past RK4's stability limit at dt = 1e-2
+# k_Omega = 1e3 is far past RK4's stability limit at dt = 1e-2: a stable step needs 6
+# halvings, more than the default refinement budget (4), so those runs are unresolved.
+K_OMEGA = [1.0, 2.54, 1e3]
 SETTINGS = dict(dt=1e-2, n_steps=100, chunk_size=8, progress=False)
-FIELDS = ("final_psi", "settling_time", "peak_torque", "cost", "status_code", "fail_step")
+FIELDS = (
+    "final_psi",
+    "settling_time",
+    "peak_torque",
+    "cost",
+    "status_code",
+    "fail_step",
+    "outcome",
+    "run_dt",
+)
 
 
 @pytest.fixture(scope="module")
@@ -86,11 +99,15 @@ def test_per_run_metrics_against_a_direct_simulation(scene, base):
     assert base.cost[g, i] == pytest.approx(float(s.tracking_cost(traj, sc)), rel=1e-12)
 
 
-def test_divergence_is_flagged_and_excluded(scene, base):
+def test_failures_past_the_refinement_budget_are_flagged_and_excluded(scene, base):
+    # k_Omega = 1e3 fails at dt = 1e-2 because of the step (the loop is stable): not
+    # "diverged", but unresolved, since a stable step is 6 halvings away (refine = 4).
     bad = base.k_Omega == 1e3
     assert bad.sum() == 2
-    assert base.diverged[bad].all() and not base.diverged[~bad].any()
-    assert np.all(base.fail_step[bad] >= 0)
+    assert base.unresolved[bad].all() and not base.failed[~bad].any()
+    assert not base.diverged.any() and not base.numerical.any()
+    assert np.all(base.fail_step[bad] >= 0) and np.isnan(base.run_dt[bad]).all()
+    assert np.all(base.dt > base.stable_dt[bad]) and np.all(base.dt < base.stable_dt[~bad])
     np.testing.assert_array_equal(base.failure_fraction[bad], 1.0)
     assert np.isnan(base.median_settling_time[bad]).all() and np.isnan(base.mean_cost[bad]).all()
     assert np.isfinite(base.mean_cost[~bad]).all()
@@ -149,9 +166,10 @@ _SHARDED = textwrap.dedent(
     kw = dict(key=jax.random.key(1), n_attitudes=3, dt=1e-2, n_steps=50, progress=False)
     one = s.sweep(sc, [2.0, 8.0], [1.0, 1e3], devices=jax.devices()[:1], chunk_size=4, **kw)
     two = s.sweep(sc, [2.0, 8.0], [1.0, 1e3], chunk_size=3, **kw)  # rounded up to 4
-    for f in ("final_psi", "settling_time", "peak_torque", "cost", "status_code", "fail_step"):
+    fields = ("final_psi", "settling_time", "peak_torque", "cost", "status_code", "fail_step")
+    for f in fields + ("outcome", "run_dt"):
         np.testing.assert_allclose(getattr(one, f), getattr(two, f), rtol=1e-12, err_msg=f)
-    assert one.diverged.sum() == 6
+    assert one.unresolved.sum() == 6 and one.diverged.sum() == 0
     print("SHARDED-OK")
     """
 )
