@@ -246,7 +246,7 @@ def simulate_ambient(
         if n_steps % save_every:
             raise ValueError(f"n_steps ({n_steps}) must be a multiple of save_every ({save_every})")
         dt = _check_dt(dt, dtype)
-        scene = scene.for_step(dt)
+        scene = scene.for_step(dt, t0)
         return _fixed(scene, solver, dt, t0, n_steps // save_every, save_every, project)
 
     if t1 is None:

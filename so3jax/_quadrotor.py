@@ -21,7 +21,8 @@ and held (zero-order hold, as flight software runs it): ``y.x`` also carries the
 held ``(f, M)`` and a step counter ``c``, all with zero derivative; the scene's
 `jump` (after every step) evaluates the controller when ``c`` reaches ``T / dt``
 steps and resets ``c``. `simulate` tells the scene its step through
-`Scene.for_step`, which also checks that ``dt`` divides ``T``.
+`Scene.for_step`, which also checks that ``dt`` divides ``T`` and takes the
+first sample from the initial state.
 
 References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control of a
 quadrotor UAV on SE(3)", CDC 2010 (and the FDCL's public reference code,
@@ -555,7 +556,15 @@ class Quadrotor(Scene):
             parts.append(jnp.zeros_like(y.x[..., _N:]))
         return LieTangent(Omega[..., None, :], jnp.concatenate(parts, -1))
 
-    def for_step(self, dt):
+    def for_step(self, dt, t0):
+        """Record ``T / dt`` (``dt`` must divide ``T``) and sample the controller at ``t0``.
+
+        A state whose step counter is 0 sits at a sample time: its held
+        ``(f, M)`` are recomputed from ``(t0, y0)``, so a scene whose gains were
+        swapped (`eqx.tree_at`, `tune`) starts from its own first sample, and
+        a run restarted at a sample boundary continues exactly. A restart
+        inside a hold (counter > 0) keeps the held values.
+        """
         if not self.sampled:
             return self
         T = self.control_period
@@ -570,7 +579,13 @@ class Quadrotor(Scene):
             n = jnp.asarray(n, T.dtype)
         else:
             n = jnp.maximum(jnp.round(T / dt), 1.0).astype(T.dtype)
-        return eqx.tree_at(lambda s: s.steps_per_sample, self, n, is_leaf=lambda a: a is None)
+        scene = eqx.tree_at(lambda s: s.steps_per_sample, self, n, is_leaf=lambda a: a is None)
+        y = self.y0
+        c = self.control(jnp.asarray(t0, y.x.dtype), y)
+        at_sample = (y.x[..., _COUNTER] == 0)[..., None]
+        held = jnp.where(at_sample, jnp.concatenate([c.f[..., None], c.M], -1), y.x[..., _HELD])
+        x = jnp.concatenate([y.x[..., :_N], held, y.x[..., _COUNTER:]], -1)
+        return eqx.tree_at(lambda s: s.y0, scene, LieState(y.R, x))
 
     def jump(self, t, y):
         if not self.sampled:
@@ -856,7 +871,7 @@ def sweep_quadrotor(
     method = RKMK4() if method is None else method
 
     def one(g, R):
-        sc = eqx.tree_at(lambda s: (s.gains, s.y0), scene, (g, _restart(scene, g, R)))
+        sc = eqx.tree_at(lambda s: (s.gains, s.y0), scene, (g, _restart(scene, R)))
         tr = simulate(sc, method, dt, n_steps, save_every)
         ok = tr.status.code == OK
         e = jnp.sqrt(jnp.sum(tr.extras["e_x"] ** 2, -1))
@@ -883,12 +898,13 @@ def sweep_quadrotor(
     return {k: np.asarray(v).reshape(G, N) for k, v in out.items()}
 
 
-def _restart(scene: Quadrotor, gains: QuadrotorGains, R0: Array) -> LieState:
-    """The initial state of ``scene`` with attitude ``R0`` (held control re-sampled)."""
-    y = LieState(R0[None], scene.y0.x)
-    if not scene.sampled:
-        return y
-    sc = eqx.tree_at(lambda s: s.gains, scene, gains)
-    c = sc.control(jnp.zeros((), R0.dtype), y)
-    held = jnp.concatenate([c.f[None], c.M, jnp.zeros(1, R0.dtype)])
-    return LieState(y.R, jnp.concatenate([y.x[:_N], held]))
+def _restart(scene: Quadrotor, R0: Array) -> LieState:
+    """The initial state of ``scene`` with attitude ``R0``, at a sample time.
+
+    With the step counter at 0, `Quadrotor.for_step` samples the controller
+    (with the run's gains) from this state when `simulate` starts.
+    """
+    x = scene.y0.x
+    if scene.sampled:
+        x = x.at[_COUNTER].set(0.0)
+    return LieState(R0[None], x)

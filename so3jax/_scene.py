@@ -42,12 +42,13 @@ class Scene(eqx.Module):
         """
         return y
 
-    def for_step(self, dt: Array) -> Scene:
-        """The scene to integrate with fixed steps of ``dt`` (itself by default).
+    def for_step(self, dt: Array, t0: Array) -> Scene:
+        """The scene to integrate with fixed steps of ``dt`` from ``t0`` (itself by default).
 
         `simulate` calls it before stepping. A scene that depends on the step
         validates ``dt`` here (``ValueError`` naming it) and returns a copy that
-        knows it: a sampled-data controller counts steps per control period.
+        knows it: a sampled-data controller counts steps per control period, and
+        takes its first sample from the initial state at ``t0``.
         """
         return self
 

@@ -213,8 +213,8 @@ def simulate(
         raise ValueError(f"n_steps ({n_steps}) must be a multiple of save_every ({save_every})")
     dtype = scene.y0.R.dtype
     dt = _check_dt(dt, dtype)
-    scene = scene.for_step(dt)
     t0 = jnp.asarray(t0, dtype=dtype)
+    scene = scene.for_step(dt, t0)
     return _simulate(
         scene, method, dt, t0, n_steps // save_every, save_every, bool(scalarize), bool(compensated)
     )

@@ -250,8 +250,8 @@ def rollout_cost(
         _check_int(checkpoint_every, "checkpoint_every", 1)
     dtype = scene.y0.R.dtype
     dt = _check_dt(dt, dtype)
-    scene = scene.for_step(dt)
     t0 = jnp.asarray(t0, dtype)
+    scene = scene.for_step(dt, t0)
     n_save = n_steps // save_every
     block = _block_size(checkpoint_every, n_save, save_every)
     return _rollout(scene, method, dt, t0, weights, n_save, save_every, block)
