@@ -75,6 +75,11 @@ from ._so3 import (
     to_quat as to_quat,
     vee as vee,
 )
+from ._stability import (
+    closed_loop_eigenvalues as closed_loop_eigenvalues,
+    stability_interval as stability_interval,
+    stable_dt as stable_dt,
+)
 from ._state import LieState as LieState, LieTangent as LieTangent
 from ._sweep import SweepResult as SweepResult, initial_states as initial_states, sweep as sweep
 from ._tune import (
@@ -159,6 +164,9 @@ __all__ = [
     "to_euler_zyx",
     "to_quat",
     "vee",
+    "closed_loop_eigenvalues",
+    "stability_interval",
+    "stable_dt",
     "LieState",
     "LieTangent",
     "SweepResult",

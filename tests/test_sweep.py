@@ -246,6 +246,8 @@ def test_command_line(tmp_path, capsys):
     assert sweep_main([*argv, "--out", str(out), "--quiet"]) == 0
     printed = capsys.readouterr().out
     assert str(out.resolve()) in printed
+    for row in ("settled", "not settled", "numerical", "diverged", "unresolved", "runs/s"):
+        assert row in printed, row
     for name in (
         "results.npz",
         "summary.json",
