@@ -98,7 +98,7 @@ def sweep_heatmaps(result):
     for ax in axes[:2]:
         ax.plot(result.k_Omega[b], result.k_R[b], "w*", ms=12, mec="k", label="lowest mean cost")
     axes[0].legend(loc="lower right", fontsize=8)
-    axes[1].legend(loc="lower right", fontsize=7)
+    axes[1].legend(loc="upper left", fontsize=7)
     n = result.R0.shape[0]
     c = result.outcome_counts()
     fig.suptitle(
