@@ -32,7 +32,7 @@ import math
 import os
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import equinox as eqx
@@ -45,6 +45,7 @@ from ._integrators import RKMK4, AbstractLieSolver
 from ._simulate import OK, _check_int, simulate
 from ._so3 import random_rotation
 from ._stability import SAFETY, stable_dt
+from ._sweep_params import apply_params, check_params, prepare_scene
 from ._tune import (
     CostWeights,
     _check_tracking_scene,
@@ -107,6 +108,9 @@ class SweepResult:
     - `stable_dt`: the largest step known to be stable for each gain pair
       (`so3jax.stable_dt`), shape `(G,)`.
     - `threshold`, `dt`, `n_steps`, `save_every`, `refine`: the settings.
+    - `params`: the swept scene parameters by name, one value per column
+      ``i``, shape `(N, ...)` (empty without ``params``); column
+      ``i = p * n_attitudes + a`` is combination ``p`` from attitude ``a``.
     """
 
     k_R: np.ndarray
@@ -128,6 +132,7 @@ class SweepResult:
     n_steps: int
     save_every: int
     refine: int
+    params: dict = dataclasses.field(default_factory=dict)
 
     @property
     def diverged(self) -> np.ndarray:
@@ -311,6 +316,8 @@ class SweepResult:
     def save(self, path: str | os.PathLike) -> None:
         """Write everything to one ``.npz`` file (see `load`)."""
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        for name, value in fields.pop("params").items():
+            fields[f"param__{name}"] = value
         gs = fields.pop("grid_shape")
         fields["grid_shape"] = np.asarray(gs if gs is not None else (-1, -1))
         np.savez(path, **{k: np.asarray(v) for k, v in fields.items()})
@@ -320,7 +327,9 @@ class SweepResult:
         """Read a file written by `save`."""
         with np.load(path) as z:
             d = {k: z[k] for k in z.files}
-        missing = [f.name for f in dataclasses.fields(cls) if f.name not in d]
+        params = {k[len("param__") :]: d.pop(k) for k in list(d) if k.startswith("param__")}
+        required = [f for f in dataclasses.fields(cls) if f.default_factory is dataclasses.MISSING]
+        missing = [f.name for f in required if f.name not in d]
         if missing:
             raise ValueError(
                 f"{path} was written by an older so3jax (no {', '.join(missing)}): it cannot "
@@ -331,7 +340,7 @@ class SweepResult:
             d[name] = float(d[name])
         for name in ("n_steps", "save_every", "refine"):
             d[name] = int(d[name])
-        return cls(grid_shape=None if gs == (-1, -1) else gs, **d)
+        return cls(grid_shape=None if gs == (-1, -1) else gs, params=params, **d)
 
 
 def _nan_reduce(fn, values: np.ndarray) -> np.ndarray:
@@ -349,9 +358,22 @@ def _nan_reduce(fn, values: np.ndarray) -> np.ndarray:
 
 
 def _run_metrics(
-    scene, method, dt, n_steps, save_every, threshold, weights, k_R, k_O, R0, W0, scalarize=False
+    scene,
+    method,
+    dt,
+    n_steps,
+    save_every,
+    threshold,
+    weights,
+    k_R,
+    k_O,
+    R0,
+    W0,
+    pv=None,
+    scalarize=False,
 ):
-    sc = with_initial_state(with_gains(scene, k_R, k_O), R0, W0)
+    sc = apply_params(scene, pv) if pv else scene
+    sc = with_initial_state(with_gains(sc, k_R, k_O), R0, W0)
     traj = simulate(sc, method, dt, n_steps, save_every, scalarize=scalarize)
     psi = 0.5 * (3.0 - jnp.sum(traj.Rd * traj.R, axis=(-1, -2)))
     ok = traj.status.code == OK
@@ -374,12 +396,24 @@ def _run_metrics(
 
 @eqx.filter_jit
 def _run_chunk(
-    scene, method, dt, n_steps, save_every, threshold, weights, k_R, k_O, R0, W0, scalarize=False
+    scene,
+    method,
+    dt,
+    n_steps,
+    save_every,
+    threshold,
+    weights,
+    k_R,
+    k_O,
+    R0,
+    W0,
+    pv=None,
+    scalarize=False,
 ):
-    fn = lambda a, b, c, d: _run_metrics(
-        scene, method, dt, n_steps, save_every, threshold, weights, a, b, c, d, scalarize
+    fn = lambda a, b, c, d, e: _run_metrics(
+        scene, method, dt, n_steps, save_every, threshold, weights, a, b, c, d, e, scalarize
     )
-    return jax.vmap(fn)(k_R, k_O, R0, W0)
+    return jax.vmap(fn)(k_R, k_O, R0, W0, pv)
 
 
 def _sharded(x: np.ndarray, sharding) -> Array:
@@ -495,6 +529,8 @@ def sweep(
     n_steps: int = 1000,
     save_every: int = 1,
     omega0_std: float = 0.0,
+    params: Mapping | None = None,
+    param_grid: bool = True,
     threshold: float = 0.01,
     weights: CostWeights | None = None,
     refine: int = 4,
@@ -539,6 +575,14 @@ def sweep(
     - `dt`, `n_steps`, `save_every`: as in `simulate` (statistics use saved points).
     - `omega0_std`: standard deviation of random initial rates (rad/s) added
       to the scene's ``Omega0``.
+    - `params`: other scene parameters to vary, by name: ``inertia_scale``
+      (`(P,)` or `(P, 3)`, > 0, per axis), ``disturbance`` (`(P, 3)`, a constant
+      body torque), ``Omega0`` (`(P, 3)`, initial rates), ``reference_amplitude``
+      (`(P,)`, a factor on the reference rate). Every combination runs from
+      every initial attitude: ``N = P * n_attitudes`` columns, keyed by name in
+      `SweepResult.params`.
+    - `param_grid`: cross the `params` arrays (``True``) or zip them (``False``:
+      the same length, e.g. samples drawn from a distribution).
     - `threshold`: settling threshold on ``Psi = 1 - cos(angle)`` (0.01: 8.1 degrees).
     - `weights`: `CostWeights` of the integrated cost.
     - `refine`: at most this many halvings of ``dt`` to resolve a failed run
@@ -595,10 +639,28 @@ def sweep(
     dtype = scene.y0.R.dtype
     kr, ko, grid_shape = _gain_pairs(k_R, k_Omega, grid, bool(allow_negative_gains))
     G = kr.shape[0]
-    dt_stable = stable_dt(method, np.asarray(scene.body.inertia), kr, ko, safety)
+    prows = check_params(params, bool(param_grid))
+    P = next(iter(prows.values())).shape[0] if prows else 1
+    scene = prepare_scene(scene, prows)
+    J = np.asarray(scene.body.inertia, np.float64)
+    if "inertia_scale" in prows:
+        d = np.sqrt(prows["inertia_scale"])
+        st = np.stack([stable_dt(method, di[:, None] * J * di, kr, ko, safety) for di in d], 1)
+    else:
+        st = np.repeat(stable_dt(method, J, kr, ko, safety)[:, None], P, axis=1)
+    dt_stable = st.min(axis=1)
     _warn_step(method, dt, dt_stable, ko, refine)
-    R0, W0 = initial_states(key, n_att, omega0_std, dtype, scene.y0.x[:3])
-    R0, W0 = np.asarray(R0), np.asarray(W0)
+    R0a, W0a = initial_states(key, n_att, omega0_std, dtype, scene.y0.x[:3])
+    R0a, W0a = np.asarray(R0a), np.asarray(W0a)
+    # Column i = p * n_att + a: combination p of the parameters, from attitude a.
+    col_p, col_a = np.arange(P * n_att) // n_att, np.arange(P * n_att) % n_att
+    R0, W0 = R0a[col_a], W0a[col_a]
+    if "Omega0" in prows:
+        W0 = (W0 - np.asarray(scene.y0.x[:3]) + prows["Omega0"][col_p]).astype(dtype)
+    col_params = {k: v[col_p] for k, v in prows.items()}
+    pv_cols = {k: v.astype(dtype) for k, v in col_params.items() if k != "Omega0"}
+    n_att = P * n_att  # columns
+    stable_run = st[:, col_p].reshape(-1)
     n_runs = G * n_att
     n_dev = len(devices)
     chunk = min(chunk_size, n_runs)
@@ -613,6 +675,8 @@ def sweep(
             "key": np.asarray(jax.random.key_data(key)).tolist(),
             "n_attitudes": n_att,
             "omega0_std": omega0_std,
+            "params": {k: v.tolist() for k, v in prows.items()},
+            "param_grid": bool(param_grid),
             "dt": dt,
             "n_steps": n_steps,
             "save_every": save_every,
@@ -638,8 +702,9 @@ def sweep(
             ko[g_idx[rows]].astype(dtype),
             R0[i_idx[rows]],
             W0[i_idx[rows]],
+            {k: v[i_idx[rows]] for k, v in pv_cols.items()},
         )
-        args = [_sharded(a, sharding) for a in args]
+        args = jax.tree.map(lambda a: _sharded(a, sharding), args)
         f = 2**level
         out = _run_chunk(
             scene,
@@ -674,7 +739,7 @@ def sweep(
                 out = run(np.arange(lo, hi), 0, chunk)
                 out = {k: v[: hi - lo] for k, v in out.items()}
                 out = _resolve(
-                    out, np.arange(lo, hi), g_idx[lo:hi], dt, dt_stable, refine, chunk, n_dev, run
+                    out, np.arange(lo, hi), stable_run[lo:hi], dt, refine, chunk, n_dev, run
                 )
                 if path is not None and jax.process_index() == 0:
                     tmp = path.with_name(path.stem + ".tmp.npz")
@@ -712,6 +777,7 @@ def sweep(
         n_steps=n_steps,
         save_every=save_every,
         refine=refine,
+        params=col_params,
         **runs,
     )
 
@@ -753,7 +819,7 @@ def _bucket(n: int, chunk: int, n_dev: int) -> int:
     return min(chunk, -(-b // n_dev) * n_dev)
 
 
-def _resolve(out: dict, rows, g, dt, dt_stable, refine: int, chunk: int, n_dev: int, run):
+def _resolve(out: dict, rows, stable, dt, refine: int, chunk: int, n_dev: int, run):
     """Classify the runs of a chunk; re-run the failed ones at smaller, stable steps.
 
     A failed run goes to level ``m = max(1, m0)``, ``m0`` the halvings that make
@@ -766,7 +832,6 @@ def _resolve(out: dict, rows, g, dt, dt_stable, refine: int, chunk: int, n_dev: 
     outcome = np.where(failed, UNRESOLVED, FINITE).astype(np.int32)
     run_dt = np.where(failed, np.nan, dt)
     out = {k: np.array(v) for k, v in out.items()}
-    stable = dt_stable[g]
     m0 = _levels_to_stable(dt, stable)
     if refine == 0:
         hit = failed & (m0 == 0)
