@@ -90,6 +90,42 @@ def sweep_parser() -> argparse.ArgumentParser:
     p.add_argument("--kOmega-range", type=_positive(float), nargs=2, default=(0.3, 30.0))
     p.add_argument("--n-attitudes", type=int, default=32, help="random attitudes per gain pair")
     p.add_argument("--omega0-std", type=_nonneg_float, default=0.0, help="random rates, rad/s")
+    p.add_argument(
+        "--inertia-scale",
+        type=_positive(float),
+        nargs="+",
+        help="inertia scale factors to sweep (each on all three axes; crossed with the rest)",
+    )
+    p.add_argument(
+        "--inertia-scale-axes",
+        type=_positive(float),
+        nargs=3,
+        action="append",
+        metavar=("S1", "S2", "S3"),
+        help="a per-axis inertia scale to sweep (repeat the option for several)",
+    )
+    p.add_argument(
+        "--disturbance",
+        type=float,
+        nargs=3,
+        action="append",
+        metavar=("D1", "D2", "D3"),
+        help="a constant body disturbance torque in N m to sweep (repeat for several)",
+    )
+    p.add_argument(
+        "--omega0",
+        type=float,
+        nargs=3,
+        action="append",
+        metavar=("W1", "W2", "W3"),
+        help="an initial body rate in rad/s to sweep (repeat for several)",
+    )
+    p.add_argument(
+        "--reference-amplitude",
+        type=_nonneg_float,
+        nargs="+",
+        help="factors on the reference rate to sweep",
+    )
     p.add_argument("--threshold", type=_positive(float), default=0.01, help="settling Psi")
     p.add_argument("--save-every", type=int, default=1)
     p.add_argument("--chunk-size", type=int, default=2048, help="runs per chunk")
@@ -145,6 +181,15 @@ def sweep_main(argv=None) -> int:
     )
     if args.refine < 0:
         parser.error(f"--refine must be >= 0, got {args.refine}")
+    if args.inertia_scale and args.inertia_scale_axes:
+        parser.error("give --inertia-scale or --inertia-scale-axes, not both")
+    params = {
+        "inertia_scale": args.inertia_scale or args.inertia_scale_axes,
+        "disturbance": args.disturbance,
+        "Omega0": args.omega0,
+        "reference_amplitude": args.reference_amplitude,
+    }
+    params = {k: v for k, v in params.items() if v}
     if args.threshold > 2:
         parser.error(f"--threshold must be in (0, 2], got {args.threshold}")
     n_steps = _n_steps(args, parser)
@@ -181,6 +226,7 @@ def sweep_main(argv=None) -> int:
             n_steps=n_steps,
             save_every=args.save_every,
             omega0_std=args.omega0_std,
+            params=params,
             threshold=args.threshold,
             weights=CostWeights(args.w_psi, args.w_omega, args.w_effort),
             refine=args.refine,

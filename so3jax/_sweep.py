@@ -254,6 +254,34 @@ class SweepResult:
             "unresolved": int(self.unresolved.sum()),
         }
 
+    def param_summary(self) -> dict:
+        """Outcomes by value of each swept parameter (over all gain pairs and attitudes).
+
+        **Returns:** ``{name: [{"value", "runs", "settled_fraction", "numerical",
+        "diverged", "unresolved", "mean_cost"}, ...]}``, one entry per distinct value.
+        """
+        out = {}
+        for name, col in self.params.items():
+            col = np.asarray(col).reshape(col.shape[0], -1)
+            values, inverse = np.unique(col, axis=0, return_inverse=True)
+            rows = []
+            for k, v in enumerate(values):
+                cols = inverse.reshape(-1) == k
+                cost = self._masked(self.cost)[:, cols]
+                rows.append(
+                    {
+                        "value": v.tolist() if v.size > 1 else float(v[0]),
+                        "runs": int(cols.sum() * self.cost.shape[0]),
+                        "settled_fraction": float(self.settled[:, cols].mean()),
+                        "numerical": int(self.numerical[:, cols].sum()),
+                        "diverged": int(self.diverged[:, cols].sum()),
+                        "unresolved": int(self.unresolved[:, cols].sum()),
+                        "mean_cost": float(np.nanmean(cost)) if np.isfinite(cost).any() else None,
+                    }
+                )
+            out[name] = rows
+        return out
+
     def summary(self) -> dict:
         """A JSON-ready summary: outcome counts, the stable step, and the best gain pair."""
         b = self.best()
@@ -275,6 +303,7 @@ class SweepResult:
             "stable_dt_all_gains": self.dt_stable_all,
             "gains_beyond_stable_dt": int(beyond.sum()),
             "failure_fraction_overall": float(1.0 - self.settled.mean()),
+            "params": self.param_summary(),
             "best": {
                 "k_R": np.asarray(self.k_R[b]).tolist(),
                 "k_Omega": np.asarray(self.k_Omega[b]).tolist(),
@@ -311,6 +340,14 @@ class SweepResult:
             f"dt = {self.dt:g} is beyond the stability limit for {beyond} of "
             f"{self.stable_dt.size} gain pairs; dt <= {self.dt_stable_all:.3g} is stable for all"
         )
+        for name, rows in self.param_summary().items():
+            lines.append(f"by {name}:")
+            for r in rows:
+                cost = "nan" if r["mean_cost"] is None else f"{r['mean_cost']:.4g}"
+                lines.append(
+                    f"  {str(r['value']):<24} settled {r['settled_fraction']:>6.1%}  "
+                    f"numerical {r['numerical']}  diverged {r['diverged']}  mean cost {cost}"
+                )
         return "\n".join(lines)
 
     def save(self, path: str | os.PathLike) -> None:
@@ -646,6 +683,15 @@ def sweep(
     if "inertia_scale" in prows:
         d = np.sqrt(prows["inertia_scale"])
         st = np.stack([stable_dt(method, di[:, None] * J * di, kr, ko, safety) for di in d], 1)
+        for di in d:
+            m = np.sort(np.linalg.eigvalsh(di[:, None] * J * di))
+            if m[0] + m[1] < m[2] * (1 - 1e-12):
+                warnings.warn(
+                    f"params['inertia_scale'] {di**2} gives principal moments {m} that violate "
+                    "the triangle inequality J1 + J2 >= J3: no physical rigid body has them",
+                    stacklevel=2,
+                )
+                break
     else:
         st = np.repeat(stable_dt(method, J, kr, ko, safety)[:, None], P, axis=1)
     dt_stable = st.min(axis=1)

@@ -95,3 +95,34 @@ def test_bad_parameters_are_named():
         "same length.*inertia_scale: 2, reference_amplitude: 1",
         param_grid=False,
     )
+
+
+def test_command_line_parameter_options(capsys):
+    from so3jax._cli_sweep import sweep_main, sweep_parser
+
+    args = sweep_parser().parse_args(
+        [
+            "--inertia-scale",
+            "0.8",
+            "1.2",
+            "--disturbance",
+            "0",
+            "0",
+            "0.1",
+            "--omega0",
+            "1",
+            "0",
+            "0",
+        ]
+    )
+    assert args.inertia_scale == [0.8, 1.2] and args.disturbance == [[0.0, 0.0, 0.1]]
+    assert args.omega0 == [[1.0, 0.0, 0.0]]
+    for argv, match in (
+        (["--inertia-scale", "-1"], "--inertia-scale"),
+        (["--inertia-scale", "1", "--inertia-scale-axes", "1", "1", "1"], "not both"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            sweep_main(argv)
+        assert e.value.code == 2 and match in capsys.readouterr().err
+    with pytest.warns(UserWarning, match="triangle inequality"):
+        s.sweep(SEED, [1.0], [1.0], params={"inertia_scale": [[0.5, 0.5, 2.0]]}, **KW)
