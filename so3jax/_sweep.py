@@ -45,7 +45,7 @@ from ._integrators import RKMK4, AbstractLieSolver
 from ._simulate import OK, _check_int, simulate
 from ._so3 import random_rotation
 from ._stability import SAFETY, stable_dt
-from ._sweep_params import apply_params, check_params, prepare_scene
+from ._sweep_params import apply_params, check_params, draw, prepare_scene, split_params
 from ._tune import (
     CostWeights,
     _check_tracking_scene,
@@ -617,7 +617,8 @@ def sweep(
       body torque), ``Omega0`` (`(P, 3)`, initial rates), ``reference_amplitude``
       (`(P,)`, a factor on the reference rate). Every combination runs from
       every initial attitude: ``N = P * n_attitudes`` columns, keyed by name in
-      `SweepResult.params`.
+      `SweepResult.params`. A value may instead be a distribution, a function
+      ``key -> value``, drawn once per initial attitude.
     - `param_grid`: cross the `params` arrays (``True``) or zip them (``False``:
       the same length, e.g. samples drawn from a distribution).
     - `threshold`: settling threshold on ``Psi = 1 - cos(angle)`` (0.01: 8.1 degrees).
@@ -676,37 +677,42 @@ def sweep(
     dtype = scene.y0.R.dtype
     kr, ko, grid_shape = _gain_pairs(k_R, k_Omega, grid, bool(allow_negative_gains))
     G = kr.shape[0]
-    prows = check_params(params, bool(param_grid))
+    arrays, dists = split_params(params)
+    prows = check_params(arrays, bool(param_grid))
     P = next(iter(prows.values())).shape[0] if prows else 1
-    scene = prepare_scene(scene, prows)
+    drawn = draw(dists, key, n_att)
+    scene = prepare_scene(scene, {**prows, **drawn})
+    # Column i = p * n_att + a: combination p of the parameter arrays, from attitude a
+    # (distributions are sampled per attitude a).
+    col_p, col_a = np.arange(P * n_att) // n_att, np.arange(P * n_att) % n_att
+    col_params = {k: v[col_p] for k, v in prows.items()}
+    col_params.update({k: v[col_a] for k, v in drawn.items()})
     J = np.asarray(scene.body.inertia, np.float64)
-    if "inertia_scale" in prows:
-        d = np.sqrt(prows["inertia_scale"])
-        st = np.stack([stable_dt(method, di[:, None] * J * di, kr, ko, safety) for di in d], 1)
-        for di in d:
-            m = np.sort(np.linalg.eigvalsh(di[:, None] * J * di))
+    if "inertia_scale" in col_params:
+        scales, which = np.unique(col_params["inertia_scale"], axis=0, return_inverse=True)
+        inertias = [np.sqrt(sc)[:, None] * J * np.sqrt(sc) for sc in scales]
+        st = np.stack([stable_dt(method, Ji, kr, ko, safety) for Ji in inertias], 1)
+        st = st[:, which.reshape(-1)]
+        for sc, Ji in zip(scales, inertias, strict=True):
+            m = np.sort(np.linalg.eigvalsh(Ji))
             if m[0] + m[1] < m[2] * (1 - 1e-12):
                 warnings.warn(
-                    f"params['inertia_scale'] {di**2} gives principal moments {m} that violate "
+                    f"params['inertia_scale'] {sc} gives principal moments {m} that violate "
                     "the triangle inequality J1 + J2 >= J3: no physical rigid body has them",
                     stacklevel=2,
                 )
                 break
     else:
-        st = np.repeat(stable_dt(method, J, kr, ko, safety)[:, None], P, axis=1)
+        st = np.repeat(stable_dt(method, J, kr, ko, safety)[:, None], col_p.size, axis=1)
     dt_stable = st.min(axis=1)
     _warn_step(method, dt, dt_stable, ko, refine)
     R0a, W0a = initial_states(key, n_att, omega0_std, dtype, scene.y0.x[:3])
-    R0a, W0a = np.asarray(R0a), np.asarray(W0a)
-    # Column i = p * n_att + a: combination p of the parameters, from attitude a.
-    col_p, col_a = np.arange(P * n_att) // n_att, np.arange(P * n_att) % n_att
-    R0, W0 = R0a[col_a], W0a[col_a]
-    if "Omega0" in prows:
-        W0 = (W0 - np.asarray(scene.y0.x[:3]) + prows["Omega0"][col_p]).astype(dtype)
-    col_params = {k: v[col_p] for k, v in prows.items()}
+    R0, W0 = np.asarray(R0a)[col_a], np.asarray(W0a)[col_a]
+    if "Omega0" in col_params:
+        W0 = (W0 - np.asarray(scene.y0.x[:3]) + col_params["Omega0"]).astype(dtype)
     pv_cols = {k: v.astype(dtype) for k, v in col_params.items() if k != "Omega0"}
     n_att = P * n_att  # columns
-    stable_run = st[:, col_p].reshape(-1)
+    stable_run = st.reshape(-1)
     n_runs = G * n_att
     n_dev = len(devices)
     chunk = min(chunk_size, n_runs)
@@ -721,7 +727,7 @@ def sweep(
             "key": np.asarray(jax.random.key_data(key)).tolist(),
             "n_attitudes": n_att,
             "omega0_std": omega0_std,
-            "params": {k: v.tolist() for k, v in prows.items()},
+            "params": {k: v.tolist() for k, v in col_params.items()},
             "param_grid": bool(param_grid),
             "dt": dt,
             "n_steps": n_steps,

@@ -15,6 +15,12 @@ A sweep's ``params`` maps names to arrays whose leading axis lists values:
 With ``param_grid=True`` the named arrays are crossed (every combination);
 with ``False`` they are zipped (the same ``P``: e.g. ``P`` samples drawn from
 a distribution). Each combination is run from every initial attitude.
+
+A value may also be a distribution: a function ``key -> value`` (one value, of
+the shape above without ``P``). It is sampled once per initial attitude ``a``
+from ``fold_in(fold_in(key, a), 2 + k)`` (``k`` the parameter's place in
+`PARAMS`), so, like the attitude, sample ``a`` does not depend on the number of
+attitudes, and every gain pair and grid combination sees the same draws.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -60,30 +67,72 @@ class ScaledReference(eqx.Module):
         return self.amplitude * jnp.asarray(w), self.amplitude * jnp.asarray(dw)
 
 
-def check_params(params: Mapping | None, grid: bool) -> dict[str, np.ndarray]:
-    """Validate ``params``; return one row per combination, name -> `(P, *shape)`."""
-    if params is None or len(params) == 0:
-        return {}
+def _validate(name: str, value, leading: str) -> np.ndarray:
+    """``value`` as float64 `(n, *shape)`; ``ValueError`` naming the parameter otherwise."""
+    v = np.asarray(value, dtype=np.float64)
+    shape = PARAMS[name]
+    if name == "inertia_scale" and v.ndim == 1:
+        v = np.repeat(v[:, None], 3, axis=1)
+    if v.ndim != 1 + len(shape) or v.shape[1:] != shape or v.shape[0] < 1:
+        if name == "inertia_scale":
+            want = f"({leading},) or ({leading}, 3)"
+        else:
+            want = str((leading,) + shape)
+        raise ValueError(f"params[{name!r}] must have shape {want}, got {np.shape(value)}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"params[{name!r}] must be finite")
+    if name == "inertia_scale" and np.any(v <= 0):
+        raise ValueError(
+            f"params['inertia_scale'] must be > 0 (a scale of the inertia), got min {v.min():g}"
+        )
+    return v
+
+
+def split_params(params: Mapping | None) -> tuple[dict, dict]:
+    """``(arrays, distributions)``: names checked, callables set apart."""
+    if params is None:
+        return {}, {}
     if not isinstance(params, Mapping):
         raise TypeError(f"params must be a mapping of names to arrays, got {type(params).__name__}")
-    out = {}
+    arrays, dists = {}, {}
     for name, value in params.items():
         if name not in PARAMS:
             raise ValueError(f"params: unknown parameter {name!r}; choose from {', '.join(PARAMS)}")
-        v = np.asarray(value, dtype=np.float64)
-        shape = PARAMS[name]
-        if name == "inertia_scale" and v.ndim == 1:
-            v = np.repeat(v[:, None], 3, axis=1)
-        if v.ndim != 1 + len(shape) or v.shape[1:] != shape or v.shape[0] < 1:
-            want = "(P,) or (P, 3)" if name == "inertia_scale" else str(("P",) + shape)
-            raise ValueError(f"params[{name!r}] must have shape {want}, got {np.shape(value)}")
-        if not np.all(np.isfinite(v)):
-            raise ValueError(f"params[{name!r}] must be finite")
-        if name == "inertia_scale" and np.any(v <= 0):
+        (dists if callable(value) else arrays)[name] = value
+    return arrays, dists
+
+
+def draw(dists: Mapping[str, Callable], key, n: int) -> dict[str, np.ndarray]:
+    """Sample each distribution once per attitude ``a < n``; name -> `(n, *shape)`."""
+    out = {}
+    for name, f in dists.items():
+        k = list(PARAMS).index(name)
+        keys = jax.vmap(lambda a, k=k: jax.random.fold_in(jax.random.fold_in(key, a), 2 + k))(
+            jnp.arange(n)
+        )
+        try:
+            v = jax.vmap(f)(keys)
+        except Exception as e:
             raise ValueError(
-                f"params['inertia_scale'] must be > 0 (a scale of the inertia), got min {v.min():g}"
+                f"params[{name!r}]: a distribution must be a function key -> value; it failed: {e}"
+            ) from e
+        shape = PARAMS[name]
+        if name == "inertia_scale" and np.shape(v) == (n,):
+            v = np.repeat(np.asarray(v)[:, None], 3, axis=1)
+        if np.shape(v) != (n,) + shape:
+            raise ValueError(
+                f"params[{name!r}]: a distribution must return one value of shape {shape}, "
+                f"got {np.shape(v)[1:]}"
             )
-        out[name] = v
+        out[name] = _validate(name, v, "n_attitudes")
+    return out
+
+
+def check_params(params: Mapping | None, grid: bool) -> dict[str, np.ndarray]:
+    """Validate the arrays of ``params``; return one row per combination, name -> `(P, ...)`."""
+    if not params:
+        return {}
+    out = {name: _validate(name, value, "P") for name, value in params.items()}
     sizes = {k: v.shape[0] for k, v in out.items()}
     if grid:
         idx = np.meshgrid(*[np.arange(n) for n in sizes.values()], indexing="ij")

@@ -1,5 +1,7 @@
 """Sweeps over scene parameters: inertia per axis, disturbance, initial rates, reference."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -126,3 +128,36 @@ def test_command_line_parameter_options(capsys):
         assert e.value.code == 2 and match in capsys.readouterr().err
     with pytest.warns(UserWarning, match="triangle inequality"):
         s.sweep(SEED, [1.0], [1.0], params={"inertia_scale": [[0.5, 0.5, 2.0]]}, **KW)
+
+
+def test_distributions_are_sampled_per_attitude():
+    """A parameter given as a function ``key -> value`` is drawn once per initial attitude
+    (sample ``a`` independent of the number of attitudes, the same for every gain pair)."""
+    import jax
+
+    from so3jax._sweep_params import draw
+
+    dist = {"disturbance": lambda k: 0.05 * jax.random.normal(k, (3,))}
+    r = s.sweep(SEED, [8.81, 20.0], [2.54], params=dist, chunk_size=4, **KW)
+    d = r.params["disturbance"]
+    assert d.shape == (2, 3) and not np.allclose(d[0], d[1])
+    key = jax.random.key(3)
+    np.testing.assert_array_equal(draw(dist, key, 4)["disturbance"][:2], d)
+    for i in range(2):
+        sc = direct(i, _with_defaults(r))
+        traj = s.simulate(sc, s.RKMK4(), 1e-2, 200)
+        assert r.cost[0, i] == pytest.approx(float(s.tracking_cost(traj, sc)), rel=1e-10)
+    with pytest.raises(ValueError, match=r"params\['Omega0'\]: a distribution must return"):
+        s.sweep(SEED, [1.0], [1.0], params={"Omega0": lambda k: jax.random.normal(k, (2,))}, **KW)
+
+
+def _with_defaults(r):
+    """``r`` with the parameters it did not sweep at their neutral values (for `direct`)."""
+    n = r.cost.shape[1]
+    defaults = {
+        "inertia_scale": np.ones((n, 3)),
+        "disturbance": np.zeros((n, 3)),
+        "Omega0": np.zeros((n, 3)),
+        "reference_amplitude": np.ones(n),
+    }
+    return dataclasses.replace(r, params={**defaults, **r.params})
