@@ -21,7 +21,7 @@ fast one, about ``-k_Omega / J_min`` when overdamped, sets the step limit
 eigenvalue's direction (on the negative real axis: 2 for Lie–Euler, 2.51 for
 the three-stage order-3 methods, 2.79 for RK4-type, 3.31 for Dormand–Prince).
 The measured largest stable steps of ``benchmarks/stability.py`` follow this
-to within 5 % (RKMK4, seed gains: 0.100 s measured, 0.103 s predicted).
+to within -3 % and +6 % (RKMK4, seed gains: 0.100 s measured, 0.103 s predicted).
 
 LGVI treats the torque by fixed-point iteration, which converges for
 ``h k_Omega / (2 J_min) < 1``: its limit is ``2 J_min / k_Omega``.
