@@ -836,6 +836,14 @@ def sweep(
 
 def _warn_step(method, dt: float, dt_stable: np.ndarray, k_Omega: np.ndarray, refine: int):
     """Warn when ``dt`` is past the method's stability limit for some gain pairs."""
+    if np.isnan(dt_stable).any():
+        warnings.warn(
+            f"the stability limit of {method.name} is not known: runs that fail are re-run "
+            f"at halved steps (at most {refine} halvings) and reported numerical if that "
+            "resolves them, unresolved otherwise, never diverged",
+            stacklevel=3,
+        )
+        return
     beyond = dt > dt_stable
     if not beyond.any():
         return
@@ -858,10 +866,10 @@ def _warn_step(method, dt: float, dt_stable: np.ndarray, k_Omega: np.ndarray, re
 
 
 def _levels_to_stable(dt: float, dt_stable: np.ndarray) -> np.ndarray:
-    """Smallest ``m >= 0`` with ``dt / 2**m <= dt_stable`` (a large number if unknown)."""
+    """Smallest ``m >= 0`` with ``dt / 2**m <= dt_stable`` (0 where the limit is unknown)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         m = np.ceil(np.log2(dt / dt_stable) - 1e-12)
-    return np.where(np.isnan(m), 10**6, np.maximum(m, 0)).astype(np.int64)
+    return np.where(np.isnan(m), 0, np.maximum(m, 0)).astype(np.int64)
 
 
 def _bucket(n: int, chunk: int, n_dev: int) -> int:
@@ -886,7 +894,7 @@ def _resolve(out: dict, rows, stable, dt, refine: int, chunk: int, n_dev: int, r
     out = {k: np.array(v) for k, v in out.items()}
     m0 = _levels_to_stable(dt, stable)
     if refine == 0:
-        hit = failed & (m0 == 0)
+        hit = failed & (dt <= stable)
         outcome[hit], run_dt[hit] = DIVERGED, dt
     pending = np.flatnonzero(failed) if refine > 0 else np.zeros(0, int)
     for level in range(1, refine + 1):

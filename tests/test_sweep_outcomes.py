@@ -228,3 +228,36 @@ def test_progress_bar_counts_runs(capsys):
         s.sweep(s.scenes.seed(), K_R, [2.54, 40.0], **{**KW, "progress": True})
     err = capsys.readouterr().err
     assert "8/8" in err and "runs/s" in err and "numerical=4" in err
+
+
+class _Unknown(s.AbstractLieSolver):
+    """RKMK4 behind a method type whose stability region the library does not know."""
+
+    inner: s.RKMK4 = s.RKMK4()
+
+    @property
+    def order(self):
+        return 4
+
+    def step(self, scene, t, y, h):
+        return self.inner.step(scene, t, y, h)
+
+
+def test_a_method_with_unknown_limit_is_refined_but_never_diverged():
+    """Without a known limit, a failure cannot be blamed on the loop: halvings resolve the
+    step-limited runs (numerical); the rest stay unresolved, never diverged."""
+    assert np.isnan(s.stable_dt(_Unknown(), SEED_J, [1.0], [1.0])).all()
+    with pytest.warns(UserWarning, match="not known"):
+        r = s.sweep(
+            s.scenes.seed(),
+            K_R,
+            [40.0, -40.0],
+            method=_Unknown(),
+            refine=1,
+            allow_negative_gains=True,
+            **KW,
+        )
+    pos = (r.k_Omega > 0)[:, None] & np.ones(r.outcome.shape, bool)
+    np.testing.assert_array_equal(r.numerical, pos)
+    np.testing.assert_array_equal(r.unresolved, ~pos)
+    assert not r.diverged.any()

@@ -65,8 +65,9 @@ def test_parameter_sweep_equals_a_loop_of_simulate():
     )
     assert z.cost.shape == (1, 4)
     np.testing.assert_array_equal(z.params["inertia_scale"][2], [1.1, 1.1, 1.1])
-    plain = s.sweep(SEED, [8.81], [2.54], chunk_size=16, **KW)
-    np.testing.assert_allclose(z.cost[:, :2], plain.cost, rtol=1e-12)
+    sc = direct(3, _with_defaults(z))
+    traj = s.simulate(sc, s.RKMK4(), 1e-2, 200)
+    assert z.cost[0, 3] == pytest.approx(float(s.tracking_cost(traj, sc)), rel=1e-10)
 
 
 def test_parameter_sweep_saves_and_resumes(tmp_path):
