@@ -54,7 +54,7 @@ def main():
         return value, grad
 
     # One forward pass and one iteration's value-and-gradient, each compiled once.
-    timings = {}
+    timings, grads = {}, {}
     for name, fn in (
         ("forward pass", loss),
         ("value and gradient, reverse mode", jax.value_and_grad(loss)),
@@ -62,7 +62,16 @@ def main():
     ):
         r = C.compile_and_time(fn, scene.gains, repeats=args.repeats)
         timings[name] = {"run_s": r["run_s"], "compile_s": r["compile_s"]}
+        grads[name] = r["out"][1] if name.startswith("value and gradient") else None
     base = timings["forward pass"]["run_s"]
+    g_rev, g_fwd = (
+        jax.tree.leaves(grads[f"value and gradient, {m} mode"]) for m in ("reverse", "forward")
+    )
+    scale = max(float(jnp.max(jnp.abs(a))) for a in g_rev)
+    grad_agree = (
+        max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(g_fwd, g_rev, strict=True)) / scale
+    )
+    print(f"forward and reverse gradients agree to {grad_agree:.1e} (relative)")
     C.print_table(
         [
             {
@@ -95,12 +104,16 @@ def main():
         )
         return res, time.perf_counter() - t
 
-    for mode in ("forward", "reverse"):
+    # --quick (a smoke run) tunes in forward mode only and skips the loop-only timing:
+    # each tuning run compiles its own programs, which is what takes the time.
+    for mode in ("forward",) if args.quick else ("forward", "reverse"):
         res, wall = run_tune(mode, n_iter)
         # The loop alone: a run of one iteration pays the same compilations, so the
         # difference of the two walls is what n_iter - 1 compiled iterations took.
-        _, wall_one = run_tune(mode, 1)
-        loop = (wall - wall_one) * n_iter / max(n_iter - 1, 1)
+        loop = None
+        if not args.quick:
+            wall_one = run_tune(mode, 1)[1]
+            loop = (wall - wall_one) * n_iter / max(n_iter - 1, 1)
         key = f"value and gradient, {mode} mode"
         runs[mode] = {
             "result": res,
@@ -108,15 +121,17 @@ def main():
             "loop_s": loop,
             "steady_s": n_iter * timings[key]["run_s"],
         }
+        without = "" if loop is None else f"{loop:.2f} s without (scaled from {n_iter - 1}); "
         print(
-            f"{mode} mode: {n_iter} iterations in {wall:.2f} s with compilation, "
-            f"{loop:.2f} s without (scaled from {n_iter - 1} iterations); "
+            f"{mode} mode: {n_iter} iterations in {wall:.2f} s with compilation, {without}"
             f"{n_iter} x the fastest compiled iteration = {runs[mode]['steady_s']:.2f} s"
         )
-    r_f, r_r = runs["forward"]["result"], runs["reverse"]["result"]
-    agree = float(np.max(np.abs(r_f.cost_history - r_r.cost_history) / r_r.cost_history))
-    print(f"forward and reverse runs agree to {agree:.1e} (relative, cost history)")
-    res = r_f
+    agree = None
+    if "reverse" in runs:
+        r_f, r_r = runs["forward"]["result"], runs["reverse"]["result"]
+        agree = float(np.max(np.abs(r_f.cost_history - r_r.cost_history) / r_r.cost_history))
+        print(f"forward and reverse runs agree to {agree:.1e} (relative, cost history)")
+    res = runs["forward"]["result"]
     rmse = np.sqrt(res.cost_history / n_samples)
     print("RMSE of |e_x| [m] by iteration:")
     print(np.array2string(rmse, precision=4, max_line_width=100))
@@ -166,6 +181,7 @@ def main():
             "tune_loop_without_compile_s": {m: r["loop_s"] for m, r in runs.items()},
             "n_iter_times_fastest_iteration_s": {m: r["steady_s"] for m, r in runs.items()},
             "forward_reverse_agreement": agree,
+            "gradient_forward_reverse_agreement": grad_agree,
             "loss_history": res.cost_history,
             "rmse_history": rmse,
             "gains_initial": {

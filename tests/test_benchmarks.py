@@ -105,11 +105,10 @@ def test_sweep_and_tune_quick(tmp_path):
     assert all(r["seconds"] > 0 for r in tune["rows"])
 
 
-
 @pytest.mark.slow
 def test_difftune_quick(tmp_path):
     data = _run("difftune.py", tmp_path)
     rmse = data["rmse_history"]
     assert len(rmse) == 11 and rmse[-1] < rmse[0]  # 10 iterations of descent
-    assert data["forward_reverse_agreement"] < 1e-10
+    assert data["gradient_forward_reverse_agreement"] < 1e-10
     assert min(min(v) for v in data["gains_final"].values()) >= 0.5

@@ -243,6 +243,7 @@ def test_command_line(tmp_path, capsys):
         assert "--dt" in capsys.readouterr().err
     out = tmp_path / "cli"
     argv = ["--n-kR", "2", "--n-kOmega", "2", "--n-attitudes", "2", "--duration", "0.3"]
+    argv += ["--kOmega-range", "0.3", "10"]  # inside the step limit: no refinement to compile
     assert sweep_main([*argv, "--out", str(out), "--quiet"]) == 0
     printed = capsys.readouterr().out
     assert str(out.resolve()) in printed
