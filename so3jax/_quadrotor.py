@@ -44,6 +44,7 @@ import numpy as np
 from ._control import _check_gain, _geometric_torque
 from ._dynamics import RigidBody
 from ._scene import Scene, check_rotation
+from ._scenes import _cast_floats, _check_reference
 from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _vee
 from ._state import LieState, LieTangent
 from ._types import Array, ArrayLike
@@ -469,24 +470,6 @@ class FlipReference(eqx.Module):
         return x, _e1_like(t)
 
 
-def _check_reference(reference, dtype):
-    if not callable(reference):
-        raise TypeError(
-            "reference must be a function t -> (x_d(t), b1_d(t)), e.g. "
-            f"so3jax.CircleReference(), got {type(reference).__name__}"
-        )
-    try:
-        out = jax.eval_shape(reference, jax.ShapeDtypeStruct((), dtype))
-    except Exception as e:
-        raise ValueError(f"reference(t) failed on a scalar time: {e}") from e
-    shapes = [getattr(o, "shape", None) for o in out] if isinstance(out, tuple | list) else None
-    if shapes is None or len(shapes) != 2 or any(s != (3,) for s in shapes):
-        raise ValueError(
-            "reference(t) must return (x_d, b1_d), two arrays of shape (3,); "
-            f"got {jax.tree.map(lambda o: o.shape, out)}"
-        )
-
-
 # --------------------------------------------------------------------------
 # The scene
 # --------------------------------------------------------------------------
@@ -628,10 +611,6 @@ class Quadrotor(Scene):
         }
 
 
-def _cast_floats(tree, dtype):
-    return jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, tree)
-
-
 def _vector_arg(value, name: str, dtype) -> Array:
     a = _as_float(value)
     if a.shape == ():
@@ -700,7 +679,7 @@ def quadrotor(
     if not isinstance(gains, QuadrotorGains):
         raise TypeError(f"gains must be a QuadrotorGains, got {type(gains).__name__}")
     gains = _cast_floats(gains, dtype)
-    _check_reference(reference, dtype)
+    _check_reference(reference, dtype, ("x_d", "b1_d"), "so3jax.CircleReference()")
     reference = _cast_floats(reference, dtype)
     x0 = _vector_arg(x0, "x0", dtype)
     v0 = _vector_arg(v0, "v0", dtype)

@@ -143,11 +143,15 @@ def _cast_floats(tree, dtype):
     return jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, tree)
 
 
-def _check_reference(reference, dtype):
+def _check_reference(
+    reference, dtype, names=("Omega_d", "dOmega_d"), example="so3jax.ConstantRate()"
+):
+    """A reference is a function of a scalar time returning two `(3,)` arrays ``names``."""
+    a, b = names
     if not callable(reference):
         raise TypeError(
-            "reference must be a function t -> (Omega_d(t), dOmega_d(t)), e.g. "
-            f"so3jax.ConstantRate(), got {type(reference).__name__}"
+            f"reference must be a function t -> ({a}(t), {b}(t)), e.g. "
+            f"{example}, got {type(reference).__name__}"
         )
     try:
         out = jax.eval_shape(reference, jax.ShapeDtypeStruct((), dtype))
@@ -156,7 +160,7 @@ def _check_reference(reference, dtype):
     shapes = [getattr(o, "shape", None) for o in out] if isinstance(out, tuple | list) else None
     if shapes is None or len(shapes) != 2 or any(s != (3,) for s in shapes):
         raise ValueError(
-            "reference(t) must return (Omega_d, dOmega_d), two arrays of shape (3,); "
+            f"reference(t) must return ({a}, {b}), two arrays of shape (3,); "
             f"got {jax.tree.map(lambda o: o.shape, out)}"
         )
 
