@@ -4,6 +4,12 @@ Both commands run the seed scenario (`scenes.seed`) with defaults that finish
 in about a minute on a laptop CPU, write their results and figures to an
 output folder and print where. float64 runs turn on JAX's x64 mode inside the
 command only (`jax.enable_x64` as a context), never globally.
+
+``sweep --distributed`` (or ``--coordinator``, ``--num-processes``,
+``--process-id``) runs one sweep over several processes or machines: it calls
+`jax.distributed.initialize` before anything touches a JAX device, every
+process computes its shard of each chunk, and process 0 alone writes the
+output folder. Options left out are detected by JAX (Slurm, Open MPI, ...).
 """
 
 from __future__ import annotations
@@ -136,6 +142,20 @@ def sweep_parser() -> argparse.ArgumentParser:
         help="halvings of --dt allowed to resolve a run that failed numerically (default: 4)",
     )
     _common(p, "so3jax-sweep", 10.0)
+    d = p.add_argument_group(
+        "several processes or machines (jax.distributed; process 0 writes --out)"
+    )
+    d.add_argument(
+        "--distributed",
+        action="store_true",
+        help="join a JAX cluster: jax.distributed.initialize(), which reads Slurm's (or "
+        "Open MPI's) environment for whatever of the three options below is left out",
+    )
+    d.add_argument(
+        "--coordinator", metavar="HOST:PORT", help="process 0's address (implies --distributed)"
+    )
+    d.add_argument("--num-processes", type=int, metavar="N", help="processes in all")
+    d.add_argument("--process-id", type=int, metavar="I", help="this process, 0 to N - 1")
     return p
 
 
@@ -181,6 +201,18 @@ def sweep_main(argv=None) -> int:
     )
     if args.refine < 0:
         parser.error(f"--refine must be >= 0, got {args.refine}")
+    cluster = {
+        "coordinator_address": args.coordinator,
+        "num_processes": args.num_processes,
+        "process_id": args.process_id,
+    }
+    if args.num_processes is not None and args.num_processes < 1:
+        parser.error(f"--num-processes must be >= 1, got {args.num_processes}")
+    if args.process_id is not None and not (
+        0 <= args.process_id < (args.num_processes or args.process_id + 1)
+    ):
+        parser.error(f"--process-id must be in [0, --num-processes), got {args.process_id}")
+    distributed = args.distributed or any(v is not None for v in cluster.values())
     if args.inertia_scale and args.inertia_scale_axes:
         parser.error("give --inertia-scale or --inertia-scale-axes, not both")
     params = {
@@ -198,6 +230,9 @@ def sweep_main(argv=None) -> int:
     method = _method(args.method, parser)
 
     import jax
+
+    if distributed and not jax.distributed.is_initialized():  # before any device is touched
+        jax.distributed.initialize(**{k: v for k, v in cluster.items() if v is not None})
     import matplotlib
 
     matplotlib.use("Agg")
@@ -209,7 +244,9 @@ def sweep_main(argv=None) -> int:
     from ._tune import CostWeights
 
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    first = jax.process_index() == 0
+    if first:
+        out.mkdir(parents=True, exist_ok=True)
     with jax.enable_x64(args.dtype == "float64"):
         scene = scenes.seed(dtype=args.dtype)
         k_R = np.geomspace(*args.kR_range, args.n_kR)
@@ -235,6 +272,8 @@ def sweep_main(argv=None) -> int:
             progress=not args.quiet,
         )
         seconds = time.perf_counter() - t
+    if not first:  # every process holds the result; process 0 writes it
+        return 0
     result.save(out / "results.npz")
     summary = result.summary()
     summary.update(
@@ -243,6 +282,7 @@ def sweep_main(argv=None) -> int:
         dtype=args.dtype,
         method=method.name,
         devices=[str(d) for d in jax.devices()],
+        processes=jax.process_count(),
     )
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     figures = {

@@ -9,6 +9,21 @@ torque, integrated cost, status); with a `results_dir` every finished chunk is
 written to its own ``.npz`` file at once, so an interrupted sweep resumes where
 it stopped.
 
+Several processes (several machines) run one sweep on JAX's multi-controller
+runtime: every process calls `jax.distributed.initialize` and then `sweep` with
+the same arguments. The mesh then spans every process's devices and each
+process computes its shard of every chunk (and of the re-runs that resolve its
+failures); the shards are gathered after each chunk
+(`multihost_utils.process_allgather`), so every process holds the whole chunk,
+takes the same refinement decisions and returns the same `SweepResult`. One
+sharded program per chunk was chosen over handing whole chunks to processes in
+turn: it needs no merge step and no bookkeeping of who owns which chunk, every
+collective is one JAX already provides, and the processes stay in step (each
+chunk's re-runs are sharded too). Only process 0 touches `results_dir`: it writes the chunk
+files, and on a resume it decides which chunks exist and sends their contents
+to the others (`multihost_utils.broadcast_one_to_all`), so the folder need not
+be on a shared file system.
+
 Attitude ``i`` is drawn from ``jax.random.fold_in(key, i)``: it does not depend
 on the number of attitudes, and every gain pair sees the same attitudes (common
 random numbers, so differences between gains are not sampling noise).
@@ -27,6 +42,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import io
 import json
 import math
 import os
@@ -459,11 +475,42 @@ def _sharded(x: np.ndarray, sharding) -> Array:
 
 
 def _to_host(tree):
-    if jax.process_count() > 1:  # pragma: no cover - multi-host only
-        from jax.experimental import multihost_utils
+    """Arrays on the host; shards on other processes are gathered (every process gets all)."""
 
-        tree = multihost_utils.process_allgather(tree, tiled=True)
-    return jax.tree.map(np.asarray, tree)
+    def one(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            from jax.experimental import multihost_utils
+
+            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+        return np.asarray(x)
+
+    return jax.tree.map(one, tree)
+
+
+def _from_process_0(data: bytes | None) -> bytes:
+    """``data`` of process 0, on every process (a no-op with one process)."""
+    if jax.process_count() == 1:
+        return data
+    from jax.experimental import multihost_utils
+
+    first = jax.process_index() == 0
+    n = int(multihost_utils.broadcast_one_to_all(np.int32(len(data) if first else 0)))
+    buf = np.frombuffer(data, np.uint8) if first else np.zeros(n, np.uint8)
+    return np.asarray(multihost_utils.broadcast_one_to_all(buf), np.uint8).tobytes()
+
+
+def _shared_json(make: Callable[[], dict]) -> dict:
+    """``make()`` run on process 0 only, its result (or its error) on every process."""
+    out = None
+    if jax.process_index() == 0:
+        try:
+            out = {"ok": make()}
+        except (ValueError, OSError) as e:  # raised on every process, not only on process 0
+            out = {"error": str(e), "type": type(e).__name__}
+    out = json.loads(_from_process_0(None if out is None else json.dumps(out).encode()))
+    if "error" in out:
+        raise (ValueError if out["type"] == "ValueError" else OSError)(out["error"])
+    return out["ok"]
 
 
 # --------------------------------------------------------------------------
@@ -631,10 +678,13 @@ def sweep(
     - `allow_negative_gains`: accept negative gains (a destabilising sign, on
       purpose); otherwise they raise ``ValueError``.
     - `chunk_size`: runs per chunk (rounded up to a multiple of the device count).
-    - `results_dir`: folder for the chunk files (created; ``None``: keep in memory).
+    - `results_dir`: folder for the chunk files (created; ``None``: keep in memory; with
+      several processes, process 0 alone reads and writes it).
     - `overwrite`: discard chunk files of a different sweep in `results_dir`
       instead of raising.
-    - `devices`: devices to shard each chunk over (default: all, `jax.devices()`).
+    - `devices`: devices to shard each chunk over (default: all, `jax.devices()`;
+      after `jax.distributed.initialize`, every process's devices: call `sweep`
+      with the same arguments on every process, and each gets the whole result).
     - `progress`: show a tqdm progress bar over runs (runs/s, ETA, outcome counts).
     - `on_chunk`: called as ``on_chunk(index, n_chunks)`` after each chunk is computed
       (and saved).
@@ -719,7 +769,7 @@ def sweep(
     chunk = -(-chunk // n_dev) * n_dev
     n_chunks = -(-n_runs // chunk)
 
-    folder = None
+    folder, on_disk = None, set()
     if results_dir is not None:
         config = {
             "k_R": kr.tolist(),
@@ -739,7 +789,16 @@ def sweep(
             "safety": safety,
             "format": 2,  # chunk files carry outcome and run_dt
         }
-        folder = _prepare_folder(Path(results_dir), _fingerprint(config, scene, method), overwrite)
+        folder = Path(results_dir)
+        fingerprint = _fingerprint(config, scene, method)
+
+        def existing() -> dict:
+            _prepare_folder(folder, fingerprint, overwrite)
+            names = [f"chunk_{c:05d}.npz" for c in range(n_chunks)]
+            return {"chunks": [c for c, n in enumerate(names) if (folder / n).exists()]}
+
+        # Process 0 owns the folder; the others learn from it which chunks to load.
+        on_disk = set(_shared_json(existing)["chunks"])
 
     mesh = Mesh(np.asarray(devices), ("batch",))
     sharding = NamedSharding(mesh, PartitionSpec("batch"))
@@ -774,7 +833,7 @@ def sweep(
     parts: list[dict] = []
     bar = None
     counts = {"numerical": 0, "diverged": 0, "unresolved": 0}
-    if progress:
+    if progress and jax.process_index() == 0:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=n_runs, desc="sweep", unit="run", smoothing=0.1)
@@ -783,9 +842,11 @@ def sweep(
         for c in range(n_chunks):
             lo, hi = c * chunk, min((c + 1) * chunk, n_runs)
             path = None if folder is None else folder / f"chunk_{c:05d}.npz"
-            loaded = path is not None and path.exists()
+            loaded = path is not None and c in on_disk
             if loaded:
-                out = _load_chunk(path, hi - lo)
+                first = jax.process_index() == 0
+                data = _from_process_0(path.read_bytes() if first else None)
+                out = _load_chunk(io.BytesIO(data), hi - lo, path)
             else:
                 # Pad the last chunk by repeating its last run: one compiled shape for all.
                 out = run(np.arange(lo, hi), 0, chunk)
@@ -931,13 +992,12 @@ def _prepare_folder(folder: Path, fingerprint: str, overwrite: bool) -> Path:
             )
     for stale in folder.glob("chunk_*.npz"):
         stale.unlink()
-    if jax.process_index() == 0:
-        meta.write_text(json.dumps({"fingerprint": fingerprint}))
+    meta.write_text(json.dumps({"fingerprint": fingerprint}))
     return folder
 
 
-def _load_chunk(path: Path, n: int) -> dict:
-    with np.load(path) as z:
+def _load_chunk(file, n: int, path: Path) -> dict:
+    with np.load(file) as z:
         missing = [k for k in RUN_FIELDS if k not in z.files]
         if missing:
             raise ValueError(
