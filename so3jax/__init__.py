@@ -47,7 +47,7 @@ from ._quadrotor import (
     quadrotor_control as quadrotor_control,
     sweep_quadrotor as sweep_quadrotor,
 )
-from ._simulate import Status as Status, Trajectory as Trajectory, simulate as simulate
+from ._simulate import simulate as simulate
 from ._so3 import (
     adjoint as adjoint,
     attitude_error_function as attitude_error_function,
@@ -82,6 +82,7 @@ from ._stability import (
 )
 from ._state import LieState as LieState, LieTangent as LieTangent
 from ._sweep import SweepResult as SweepResult, initial_states as initial_states, sweep as sweep
+from ._trajectory import Status as Status, Trajectory as Trajectory
 from ._tune import (
     CostWeights as CostWeights,
     TuneResult as TuneResult,

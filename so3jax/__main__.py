@@ -227,7 +227,8 @@ def run_chunked(scene, method, dt: float, n_steps: int, save_every: int, progres
     import numpy as np
     from tqdm import tqdm
 
-    from ._simulate import Status, Trajectory, simulate
+    from ._simulate import simulate
+    from ._trajectory import Status, Trajectory
 
     sizes = _plan(n_steps, save_every)
     parts, done, first_s = [], 0, 0.0

@@ -16,9 +16,9 @@ import jax.numpy as jnp
 from ._integrators import AbstractLieSolver
 from ._integrators._diffrax import DiffraxLieAdaptiveSolver, diffrax_solver, lie_term
 from ._scene import Scene
-from ._simulate import Trajectory, _check_int, _trajectory, status_from_diffrax
 from ._so3 import _is_concrete
 from ._state import all_finite
+from ._trajectory import Trajectory, _check_int, _trajectory, status_from_diffrax
 from ._types import Array
 
 #: Default number of saved points (equally spaced, both ends included).

@@ -35,7 +35,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._scene import Scene
-from ._simulate import (
+from ._so3 import _hat, _is_concrete, _mm, _project
+from ._state import LieState, all_finite
+from ._trajectory import (
     NONFINITE,
     OK,
     Status,
@@ -45,8 +47,6 @@ from ._simulate import (
     _trajectory,
     status_from_diffrax,
 )
-from ._so3 import _hat, _is_concrete, _mm, _project
-from ._state import LieState, all_finite
 from ._types import Array
 
 # The classic Runge–Kutta method (Kutta 1901), which diffrax does not ship. It has

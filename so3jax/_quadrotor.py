@@ -831,7 +831,8 @@ def sweep_quadrotor(
     the vehicle was upside down), ``status_code``.
     """
     from ._integrators import RKMK4
-    from ._simulate import OK, simulate
+    from ._simulate import simulate
+    from ._trajectory import OK
 
     if not isinstance(scene, Quadrotor):
         raise TypeError(f"scene must be a Quadrotor scene, got {type(scene).__name__}")

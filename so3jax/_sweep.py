@@ -58,10 +58,11 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._integrators import RKMK4, AbstractLieSolver
-from ._simulate import OK, _check_int, simulate
+from ._simulate import simulate
 from ._so3 import random_rotation
 from ._stability import SAFETY, stable_dt
 from ._sweep_params import apply_params, check_params, draw, prepare_scene, split_params
+from ._trajectory import OK, _check_int
 from ._tune import (
     CostWeights,
     _check_tracking_scene,

@@ -28,9 +28,10 @@ import numpy as np
 from ._control import GeometricController, GeometricGains
 from ._integrators import RKMK4, AbstractLieSolver
 from ._scene import Scene
-from ._simulate import OK, Trajectory, _check_dt, _check_int, guarded_step
+from ._simulate import guarded_step
 from ._so3 import _as_float, _is_concrete, _mtv, _mv
 from ._state import LieState
+from ._trajectory import OK, Trajectory, _check_dt, _check_int
 from ._types import Array, ArrayLike
 
 # --------------------------------------------------------------------------

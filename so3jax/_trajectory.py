@@ -1,0 +1,122 @@
+"""What a run returns: `Trajectory` and `Status`, and the argument checks every driver shares.
+
+A module below both drivers, the fixed-step loop (`_simulate`) and the adaptive
+one (`_adaptive`), so that neither imports the other to build its result.
+"""
+
+from __future__ import annotations
+
+import operator
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from ._so3 import _is_concrete
+from ._state import LieState
+from ._types import Array, Float, Int
+
+#: Status codes of a run.
+OK, NONFINITE, SOLVER_FAILED, MAX_STEPS = 0, 1, 2, 3
+_MESSAGES = {
+    OK: "finite to the end",
+    NONFINITE: "the state stopped being finite",
+    SOLVER_FAILED: "the implicit solve of a step did not converge",
+    MAX_STEPS: "the step budget (max_steps) ran out before t1",
+}
+
+
+class Status(eqx.Module):
+    """How a run ended.
+
+    **Fields:**
+
+    - `code`: 0 (finite to the end), 1 (the state stopped being finite), 2 (an
+      implicit solve did not converge), 3 (adaptive runs: ``max_steps`` ran
+      out); one per run under `vmap`.
+    - `step`: index of the step that failed (the state at time
+      ``t0 + step * dt`` was the last good one), or -1.
+
+    After a failure the state is frozen at the last good value and the saved
+    points past it are NaN, so a diverging run never poisons a batch.
+    """
+
+    code: Int[Array, "*batch"]
+    step: Int[Array, "*batch"]
+
+    @property
+    def ok(self) -> Array:
+        return self.code == OK
+
+    def message(self) -> str:
+        """A sentence for a single (unbatched) run."""
+        code = int(self.code)
+        if code == OK:
+            return _MESSAGES[OK]
+        return f"{_MESSAGES[code]} at step {int(self.step)}"
+
+
+def status_from_diffrax(result, ok: Array, n_accepted: Array) -> Status:
+    """`Status` of a `diffrax.diffeqsolve` run (``throw=False``).
+
+    ``ok``: the saved states are finite; ``n_accepted``: accepted steps, reported
+    as the failing step.
+    """
+    import diffrax
+
+    ok = (result == diffrax.RESULTS.successful) & ok
+    budget = result == diffrax.RESULTS.max_steps_reached
+    code = jnp.where(ok, OK, jnp.where(budget, MAX_STEPS, NONFINITE)).astype(jnp.int32)
+    return Status(code=code, step=jnp.where(ok, -1, n_accepted).astype(jnp.int32))
+
+
+class Trajectory(eqx.Module):
+    """Saved points of a run (index 0 is the initial state).
+
+    **Fields:**
+
+    - `t`: times, shape `(n_save,)`.
+    - `R`: attitudes, shape `(n_save, 3, 3)`.
+    - `Omega`: body angular velocities, shape `(n_save, 3)`.
+    - `Rd`, `M`: reference attitude and control torque for tracking scenes
+      (``None`` otherwise).
+    - `extras`: any other quantities the scene observes, by name.
+    - `status`: a `Status`.
+    - `y`: the final state (a `LieState`), for restarting.
+    """
+
+    t: Float[Array, "*batch n"]
+    R: Float[Array, "*batch n 3 3"]
+    Omega: Float[Array, "*batch n 3"]
+    status: Status
+    y: LieState
+    Rd: Float[Array, "*batch n 3 3"] | None = None
+    M: Float[Array, "*batch n 3"] | None = None
+    extras: dict = eqx.field(default_factory=dict)
+
+
+def _trajectory(t, obs: dict, status: Status, y: LieState) -> Trajectory:
+    obs = dict(obs)
+    fields = {k: obs.pop(k) for k in ("R", "Omega", "Rd", "M") if k in obs}
+    return Trajectory(t=t, status=status, y=y, extras=obs, **fields)
+
+
+def _check_int(value, name: str, minimum: int) -> int:
+    try:
+        v = operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name} must be an integer, got {value!r}") from None
+    if v < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {v}")
+    return v
+
+
+def _check_dt(dt, dtype) -> Array:
+    dt = jnp.asarray(dt, dtype=dtype)
+    if dt.shape != ():
+        raise ValueError(f"dt must be a scalar, got shape {dt.shape}")
+    if _is_concrete(dt):
+        if not bool(jnp.isfinite(dt)) or float(dt) <= 0:
+            raise ValueError(f"dt must be positive and finite, got {float(dt)}")
+    else:
+        dt = eqx.error_if(dt, ~(dt > 0), "dt must be positive and finite")
+    return dt
