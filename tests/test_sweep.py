@@ -15,6 +15,7 @@ import pytest
 import so3jax as s
 from so3jax import _plot_sweep as plots
 from so3jax._cli_sweep import sweep_main, tune_main
+from so3jax._sweep import RUN_FIELDS
 
 matplotlib.use("Agg")
 # k_Omega = 1e3 is past the step limit on purpose: the warning is tested in test_sweep_outcomes.
@@ -25,16 +26,6 @@ K_R = [2.0, 8.81]
 # halvings, more than the default refinement budget (4), so those runs are unresolved.
 K_OMEGA = [1.0, 2.54, 1e3]
 SETTINGS = dict(dt=1e-2, n_steps=100, chunk_size=8, progress=False)
-FIELDS = (
-    "final_psi",
-    "settling_time",
-    "peak_torque",
-    "cost",
-    "status_code",
-    "fail_step",
-    "outcome",
-    "run_dt",
-)
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +39,7 @@ def base(scene):
 
 
 def assert_same(a, b, rtol=0.0):
-    for f in FIELDS:
+    for f in RUN_FIELDS:
         x, y = getattr(a, f), getattr(b, f)
         assert x.shape == y.shape, f
         np.testing.assert_allclose(x, y, rtol=rtol, atol=0, err_msg=f)
@@ -59,7 +50,7 @@ def test_reproducible_and_sample_i_independent_of_n(scene, base):
     assert_same(base, again)
     more = s.sweep(scene, K_R, K_OMEGA, key=jax.random.key(3), n_attitudes=6, **SETTINGS)
     np.testing.assert_array_equal(more.R0[:4], base.R0)
-    for f in FIELDS:
+    for f in RUN_FIELDS:
         np.testing.assert_allclose(getattr(more, f)[:, :4], getattr(base, f), rtol=1e-12)
     other = s.sweep(scene, K_R, K_OMEGA, key=jax.random.key(4), n_attitudes=4, **SETTINGS)
     assert not np.allclose(other.R0, base.R0)

@@ -17,17 +17,8 @@ import numpy as np
 import pytest
 
 import so3jax as s
+from so3jax._sweep import RUN_FIELDS
 
-FIELDS = (
-    "final_psi",
-    "settling_time",
-    "peak_torque",
-    "cost",
-    "status_code",
-    "fail_step",
-    "outcome",
-    "run_dt",
-)
 # 2 x 2 gains x 2 attitudes = 8 runs in 4 chunks of 2 (one run per process and chunk).
 SWEEP = dict(
     k_R=[2.0, 8.81], k_Omega=[1.0, 2.54], key=5, n_attitudes=2, dt=1e-2, n_steps=50, chunk_size=2
@@ -141,7 +132,7 @@ def test_two_process_sweep_equals_one_process_and_resumes(tmp_path):
     assert np.isfinite(one.cost).all() and (one.status_code == 0).all()
     for name in ("resumed_0", "resumed_1", "again_0", "again_1"):
         got = s.SweepResult.load(tmp_path / f"{name}.npz")
-        for f in FIELDS:
+        for f in RUN_FIELDS:
             np.testing.assert_array_equal(getattr(got, f), getattr(one, f), err_msg=f"{name} {f}")
         np.testing.assert_array_equal(got.R0, one.R0)
         np.testing.assert_array_equal(got.k_Omega, one.k_Omega)
