@@ -1,17 +1,26 @@
 """Cost of one gradient of the tracking cost relative to one forward pass.
 
 The mean tracking cost of the seed scenario over B random initial attitudes
-(RKMK4, dt = 1e-2), as a function of (k_R, k_Omega): forward pass, reverse
-mode with checkpointed blocks (`rollout_cost`'s default, memory ~ sqrt(n)),
-reverse mode without checkpoints (memory ~ n) and forward mode (`jax.jacfwd`,
-2 tangents). For each: run time (min over repeats, compiled), compile time,
-and XLA's temp memory (`compiled.memory_analysis()`), at two horizons; ratios
-are against the forward pass measured in the same run. Target: a gradient
-under 4x a forward pass.
+(RKMK4, dt = 1e-2), as a function of (k_R, k_Omega), run by the execution
+engine (`so3jax._engine`):
+
+- forward pass: the default program (scalarized under `vmap`), the baseline;
+- forward pass, array program (``program="array"``);
+- reverse (default): JAX's transpose of the checkpointed array program
+  (memory ~ sqrt(n));
+- reverse, discrete adjoint: the engine's own backward scan of ``jax.vjp`` of
+  one step from checkpoints (``program="adjoint"``);
+- reverse, no checkpoints (memory ~ n);
+- forward mode (`jax.jacfwd`, 2 tangents).
+
+For each: run time (min over repeats, compiled), compile time, and XLA's temp
+memory (`compiled.memory_analysis()`), at two horizons and two batch sizes;
+ratios are against the default forward pass measured in the same run. Issue 11's
+target: a gradient at most 3x that forward pass.
 
 Writes ``results/tune[-quick].json`` and ``.png``.
 
-    python benchmarks/tune.py            # 10 s and 40 s horizons, B = 16
+    python benchmarks/tune.py            # 10 s and 40 s horizons, B = 16 and 256
     python benchmarks/tune.py --quick    # smoke run: 1 s, B = 2, LieEuler
 """
 
@@ -67,26 +76,31 @@ def main(argv=None):
     args = p.parse_args(argv)
     # --quick is a smoke run: one horizon and the one-stage method, because
     # compiling the reverse passes is what takes the time.
-    horizons, B, repeats = ((100,), 2, 3) if args.quick else ((1000, 4000), 16, 5)
+    horizons, batches, repeats = ((100,), (2,), 3) if args.quick else ((1000, 4000), (16, 256), 3)
     method_name = args.method or ("LieEuler" if args.quick else "RKMK4")
     method = METHODS[method_name]()
     scene = so3.scenes.seed()
-    R0, W0 = so3.initial_states(jax.random.key(0), B)
     k = jnp.array([8.81, 2.54])
     rows = []
-    for n in horizons:
+    for B, n in [(B, n) for B in batches for n in horizons]:
+        R0, W0 = so3.initial_states(jax.random.key(0), B)
 
-        def cost(k, ck="auto"):
+        def cost(k, ck="auto", program="auto", n=n, R0=R0, W0=W0):
             return so3.expected_cost(
-                scene, k[0], k[1], R0, W0, method, 1e-2, n, checkpoint_every=ck
+                scene, k[0], k[1], R0, W0, method, 1e-2, n, checkpoint_every=ck, program=program
             )
 
         variants = {
             "forward pass": lambda k: cost(k, None),
+            "forward pass, array program": lambda k: cost(k, None, "array"),
             "reverse, checkpointed": jax.grad(cost),
+            "reverse, discrete adjoint": jax.grad(lambda k: cost(k, program="adjoint")),
             "reverse, no checkpoints": jax.grad(lambda k: cost(k, None)),
             "forward mode (jacfwd)": jax.jacfwd(lambda k: cost(k, None)),
         }
+        if args.quick:  # the smoke run compiles the fewest programs
+            variants.pop("forward pass, array program")
+            variants.pop("reverse, no checkpoints")
         base = None
         for name, fn in variants.items():
             r = measure(fn, k, repeats)
@@ -101,7 +115,8 @@ def main(argv=None):
             )
             rows.append(r)
             print(
-                f"n={n:5d} {name:24s} {r['seconds'] * 1e3:9.2f} ms ({r['time_ratio']:5.1f}x)  "
+                f"B={B:4d} n={n:5d} {name:28s} {r['seconds'] * 1e3:9.2f} ms "
+                f"({r['time_ratio']:5.1f}x)  "
                 f"temp {r['temp_bytes'] / 2**20:8.2f} MiB  compile {r['compile_s']:.1f} s"
             )
     args.out = Path(args.out)
@@ -116,18 +131,32 @@ def main(argv=None):
         (axes[0], "time_ratio", "time / forward pass"),
         (axes[1], "temp_bytes", "XLA temp memory (bytes)"),
     ):
-        for i, n in enumerate(horizons):
+        combos = [(B, n) for B in batches for n in horizons]
+        width = 0.8 / len(combos)
+        for i, (B, n) in enumerate(combos):
             vals = [
-                next(r[key] for r in rows if r["variant"] == v and r["n_steps"] == n) for v in names
+                next(
+                    r[key]
+                    for r in rows
+                    if r["variant"] == v and r["n_steps"] == n and r["batch"] == B
+                )
+                for v in names
             ]
-            ax.bar([j + 0.4 * i for j in range(len(names))], vals, width=0.4, label=f"{n} steps")
-        ax.set_xticks([j + 0.2 for j in range(len(names))], names, rotation=15, fontsize=8)
+            ax.bar(
+                [j + width * i for j in range(len(names))],
+                vals,
+                width=width,
+                label=f"B={B}, {n} steps",
+            )
+        ax.set_xticks(
+            [j + 0.4 - width / 2 for j in range(len(names))], names, rotation=20, fontsize=7
+        )
+        if key == "time_ratio":
+            ax.axhline(3, color="k", ls=":", lw=1, label="target 3x")
         ax.set_ylabel(label)
         ax.set_yscale("log")
         ax.legend(fontsize=8)
-    fig.suptitle(
-        f"gradient of the mean tracking cost, {method_name}, B = {B}, {jax.devices()[0].platform}"
-    )
+    fig.suptitle(f"gradient of the mean tracking cost, {method_name}, {jax.devices()[0].platform}")
     C.save_figure(fig, png_path)
 
 

@@ -46,7 +46,7 @@ class ScalarizeError(NotImplementedError):
 
 _ELEMENTWISE = frozenset(
     """
-    abs acos acosh add and asin asinh atan atan2 atanh cbrt ceil clamp convert_element_type
+    abs acos acosh add add_any and asin asinh atan atan2 atanh cbrt ceil clamp convert_element_type
     copy copy_p cos cosh div eq erf erf_inv erfc exp exp2 expm1 floor ge gt imag integer_pow
     is_finite le lgamma digamma log log1p logistic lt max min mul ne neg nextafter not or pow
     real reduce_precision rem round rsqrt select_n sign sin sinh sqrt square sub tan tanh xor
@@ -172,6 +172,7 @@ def _elementwise(prim, params, args):
             return folded
         shape = _bshape(xs)
         xs = [jnp.broadcast_to(x, shape) for x in xs]
+        _OPS[0] += 1
         return prim.bind(*xs, **params)
 
     if prim.multiple_results:  # pragma: no cover - no such elementwise primitive here
@@ -260,8 +261,66 @@ def _select_branches(index, results_per_branch):
     return outs
 
 
-def _eval(jaxpr, consts, args):
+#: With a value, `_eval` splits a long top-level program into pieces of about this
+#: many scalar operations with `jax.lax.optimization_barrier` on the values live across each
+#: cut, which bounds the size of XLA's fusions (see `barriers`).
+_BARRIER_EVERY: list = [None]
+_OPS = [0]  # scalar operations emitted so far (what `_eval` counts between cuts)
+
+
+class barriers:
+    """Context manager: scalarize with an optimization barrier every ``n`` scalar operations.
+
+    XLA fuses a scalarized program into one elementwise kernel. For a large
+    program (the adjoint of a step: its forward recomputation and its transpose,
+    over tens of thousands of scalars) the fusion passes then take minutes
+    (superlinear in the fusion size); cutting the program into pieces keeps
+    compile time near linear at the cost of spilling the live values at each cut.
+    """
+
+    def __init__(self, n: int | None):
+        self.n = n
+
+    def __enter__(self):
+        self.prev = _BARRIER_EVERY[0]
+        _BARRIER_EVERY[0] = self.n
+
+    def __exit__(self, *exc):
+        _BARRIER_EVERY[0] = self.prev
+
+
+def _cut(env, live_vars):
+    """Pass the traced components of the live values through one optimization barrier."""
+    slots, vals = [], []
+    for v in live_vars:
+        arr = env[v]
+        for idx in np.ndindex(*arr.shape):
+            x = arr[idx]
+            if isinstance(x, jax.Array) or isinstance(x, jax.core.Tracer):
+                slots.append((v, idx))
+                vals.append(x)
+    if not vals:
+        return
+    vals = jax.lax.optimization_barrier(vals)
+    for (v, idx), x in zip(slots, vals, strict=True):
+        if env[v].flags.writeable is False:
+            env[v] = env[v].copy()
+        env[v][idx] = x
+
+
+def _eval(jaxpr, consts, args, top: bool = True):
     env = {}
+    every = _BARRIER_EVERY[0] if top else None
+    mark = _OPS[0]
+    if every:
+        last_use = {}
+        for i, eqn in enumerate(jaxpr.eqns):
+            for v in eqn.invars:
+                if not isinstance(v, jex_core.Literal):
+                    last_use[v] = i
+        for v in jaxpr.outvars:
+            if not isinstance(v, jex_core.Literal):
+                last_use[v] = len(jaxpr.eqns)
 
     def read(v):
         if isinstance(v, jex_core.Literal):
@@ -272,7 +331,7 @@ def _eval(jaxpr, consts, args):
         env[v] = c
     for v, a in zip(jaxpr.invars, args, strict=True):
         env[v] = a
-    for eqn in jaxpr.eqns:
+    for i, eqn in enumerate(jaxpr.eqns):
         ins = [read(v) for v in eqn.invars]
         outs = _apply(eqn, ins)
         if not eqn.primitive.multiple_results:
@@ -283,11 +342,14 @@ def _eval(jaxpr, consts, args):
                 arr[()] = o
                 o = arr
             env[v] = o
+        if every and _OPS[0] - mark >= every and i + 1 < len(jaxpr.eqns):
+            _cut(env, [v for v in env if last_use.get(v, -1) > i])
+            mark = _OPS[0]
     return [read(v) for v in jaxpr.outvars]
 
 
 def _closed(cj, args):
-    return _eval(cj.jaxpr, [_const(c) for c in cj.consts], args)
+    return _eval(cj.jaxpr, [_const(c) for c in cj.consts], args, top=False)
 
 
 def _apply(eqn, ins):
@@ -350,7 +412,7 @@ def _apply(eqn, ins):
         cj = p.get("jaxpr") or p.get("call_jaxpr")
         if isinstance(cj, jex_core.ClosedJaxpr):
             return _closed(cj, ins)
-        return _eval(cj, [], ins)
+        return _eval(cj, [], ins, top=False)
     if name == "custom_jvp_call":
         return _closed(p["call_jaxpr"], ins)
     if name == "custom_vjp_call":
@@ -458,3 +520,67 @@ def scalar_body(step: Callable, example):
         return jax.tree.unflatten(tree, arrays)
 
     return _flat_components, body, join
+
+
+def _parts(flat, shapes) -> list:
+    """Split a flat list of components into object arrays of the given shapes."""
+    out, i = [], 0
+    for sh in shapes:
+        n = int(np.prod(sh, dtype=int))
+        a = _obj(n)
+        for k in range(n):
+            a[k] = flat[i + k]
+        out.append(a.reshape(sh))
+        i += n
+    return out
+
+
+def flat_program(fn: Callable, example):
+    """``fn`` (one pytree in, one out) as a function of flat scalar component lists.
+
+    Returns ``(run, out_struct)``: ``run(flat)`` takes the components of a pytree
+    shaped like ``example`` (as `split` gives them) and returns the list of the
+    components of ``fn``'s output, each cast to its leaf's dtype;
+    ``out_struct`` is ``jax.eval_shape(fn, example)``. Raises `ScalarizeError`
+    when ``fn`` uses a primitive the interpreter does not handle.
+    """
+    run = scalarize(fn, example)
+    leaves, tree = jax.tree.flatten(example)
+    shapes = [jnp.shape(leaf) for leaf in leaves]
+    out_struct = jax.eval_shape(fn, example)
+    out_dtypes = [(s.shape, s.dtype) for s in jax.tree.leaves(out_struct)]
+
+    def run_flat(flat):
+        out = run(jax.tree.unflatten(tree, _parts(flat, shapes)))
+        out_leaves = jax.tree.leaves(out)
+        return [
+            jnp.asarray(v, dtype=dt)
+            for leaf, (_, dt) in zip(out_leaves, out_dtypes, strict=True)
+            for v in np.asarray(leaf, dtype=object).reshape(-1)
+        ]
+
+    return run_flat, out_struct
+
+
+def split(tree) -> list:
+    """The flat list of scalar components of every leaf of ``tree``."""
+    return _flat_components(tree)
+
+
+def join(flat, struct, lead: tuple = ()):
+    """Rebuild a pytree shaped like ``struct`` from components with leading shape ``lead``.
+
+    ``flat`` lists the components in `split` order; each has shape ``lead`` (for
+    example the saved points of a scan over components).
+    """
+    out, i = [], 0
+    leaves, tree = jax.tree.flatten(struct)
+    for s in leaves:
+        n = int(np.prod(s.shape, dtype=int))
+        if n == 0:
+            out.append(jnp.zeros(tuple(lead) + tuple(s.shape), s.dtype))
+            continue
+        comps = [jnp.broadcast_to(jnp.asarray(v, s.dtype), lead) for v in flat[i : i + n]]
+        out.append(jnp.stack(comps, axis=-1).reshape(tuple(lead) + tuple(s.shape)))
+        i += n
+    return jax.tree.unflatten(tree, out)

@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from ._adaptive import simulate_adaptive
+from ._engine import run
 from ._integrators import AbstractLieSolver
 from ._scene import Scene
 from ._state import LieState, all_finite
@@ -37,7 +38,7 @@ def simulate(
     saveat: int | Array | None = None,
     max_steps: int = 4096,
     adjoint=None,
-    scalarize: bool = False,
+    scalarize: bool | None = None,
     compensated: bool = False,
 ) -> Trajectory:
     """Integrate a scene with a fixed-step Lie-group method.
@@ -77,7 +78,7 @@ def simulate(
     and ``max_steps`` the step budget. See `so3jax._adaptive.simulate_adaptive`.
     """
     if t1 is not None or rtol is not None or atol is not None:
-        if scalarize or compensated:
+        if scalarize is not None or compensated:
             raise ValueError("scalarize and compensated are for fixed steps (dt, n_steps)")
         if n_steps is not None or save_every != 1:
             raise ValueError(
@@ -116,7 +117,14 @@ def simulate(
     t0 = jnp.asarray(t0, dtype=dtype)
     scene = scene.for_step(dt, t0)
     return _simulate(
-        scene, method, dt, t0, n_steps // save_every, save_every, bool(scalarize), bool(compensated)
+        scene,
+        method,
+        dt,
+        t0,
+        n_steps // save_every,
+        save_every,
+        _program(scalarize),
+        bool(compensated),
     )
 
 
@@ -176,6 +184,29 @@ def scan_steps(one_step, carry, length: int, scalarize: bool):
     return jax.lax.scan(one_step, carry, None, length=length)[0]
 
 
+def _program(scalarize) -> str:
+    """The engine's program for the ``scalarize`` override (``None``: the engine decides)."""
+    if scalarize is None:
+        return "auto"
+    return "scalar" if scalarize else "array"
+
+
+def split_scene(scene, method, dt, t0):
+    """``(params, unpack)``: the arrays of a run, and how to rebuild its pieces.
+
+    ``params`` holds every array of the scene and the method with ``dt`` and
+    ``t0`` (what the engine differentiates and batches); ``unpack(params)``
+    returns ``(scene, method, dt, t0)``.
+    """
+    dyn, static = eqx.partition((scene, method), eqx.is_array)
+
+    def unpack(P):
+        sc, m = eqx.combine(P[0], static)
+        return sc, m, P[1], P[2]
+
+    return (dyn, dt, t0), unpack
+
+
 @eqx.filter_jit
 def _simulate(
     scene,
@@ -184,26 +215,30 @@ def _simulate(
     t0,
     n_save: int,
     save_every: int,
-    scalarize: bool = False,
+    program: str = "auto",
     compensated: bool = False,
 ) -> Trajectory:
     y0 = scene.y0
-    nan_obs = jax.tree.map(lambda a: jnp.full_like(a, jnp.nan), scene.observe(t0, y0))
+    params, unpack = split_scene(scene, method, dt, t0)
 
-    one_step = guarded_step(scene, method, dt, t0, compensated)
+    def step(P, carry):
+        sc, m, dt, t0 = unpack(P)
+        return guarded_step(sc, m, dt, t0, compensated)(carry, None)[0]
 
-    def save_block(carry, _):
-        carry = scan_steps(one_step, carry, save_every, scalarize)
+    def observe(P, carry):
+        sc, _, dt, t0 = unpack(P)
         y, k, code = carry[:3]
         t = t0 + k * dt
-        obs = scene.observe(t, y)
-        obs = jax.tree.map(lambda a, n: jnp.where(code == OK, a, n), obs, nan_obs)
-        return carry, (t, obs)
+        obs = sc.observe(t, y)
+        obs = jax.tree.map(lambda a: jnp.where(code == OK, a, jnp.nan), obs)
+        return t, obs
 
     init = (y0, jnp.array(0, jnp.int32), jnp.array(OK, jnp.int32), jnp.array(-1, jnp.int32))
     if compensated:
         init = init + (jnp.zeros_like(y0.R),)
-    (y, _, code, bad, *_), (ts, obs) = jax.lax.scan(save_block, init, None, length=n_save)
+    (ts, obs), (y, _, code, bad, *_) = run(
+        step, observe, params, init, n_save * save_every, save_every, program=program
+    )
     obs0 = scene.observe(t0, y0)
     t = jnp.concatenate([t0[None], ts])
     obs = jax.tree.map(lambda a0, a: jnp.concatenate([a0[None], a]), obs0, obs)

@@ -16,7 +16,6 @@ minimises its mean over a batch of initial attitudes with optax.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Callable
 
@@ -26,9 +25,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._control import GeometricController, GeometricGains
+from ._engine import run
 from ._integrators import RKMK4, AbstractLieSolver
 from ._scene import Scene
-from ._simulate import guarded_step
+from ._simulate import guarded_step, split_scene
 from ._so3 import _as_float, _is_concrete, _mtv, _mv
 from ._state import LieState
 from ._trajectory import OK, Trajectory, _check_dt, _check_int
@@ -209,6 +209,7 @@ def rollout_cost(
     save_every: int = 1,
     checkpoint_every: int | str | None = "auto",
     t0: float | Array = 0.0,
+    program: str = "auto",
 ) -> Array:
     """The tracking cost of a run, integrated as it goes, with checkpointed gradients.
 
@@ -232,6 +233,8 @@ def rollout_cost(
       ``sqrt(n_steps)``) or ``None`` (no checkpointing: memory linear in the
       horizon).
     - `t0`: initial time.
+    - `program`: how the engine runs it (`so3jax._engine.run`); leave it at
+      ``"auto"`` except to compare programs in benchmarks.
 
     **Returns:** the cost, shape `()`.
 
@@ -255,53 +258,44 @@ def rollout_cost(
     scene = scene.for_step(dt, t0)
     n_save = n_steps // save_every
     block = _block_size(checkpoint_every, n_save, save_every)
-    return _rollout(scene, method, dt, t0, weights, n_save, save_every, block)
+    return _rollout(scene, method, dt, t0, weights, n_save, save_every, block, program)
 
 
 @eqx.filter_jit
-def _rollout(scene, method, dt, t0, weights, n_save: int, save_every: int, block):
-    # The step logic is that of `simulate` (freeze on failure), so the costs agree.
-    one_step = guarded_step(scene, method, dt, t0)
+def _rollout(scene, method, dt, t0, weights, n_save: int, save_every: int, block, program="auto"):
+    # The step logic is that of `simulate` (freeze on failure), so the costs agree;
+    # the engine runs it (array / scalarized / discrete adjoint, see `so3jax._engine`).
+    params, unpack = split_scene(scene, method, dt, t0)
+    n_steps = n_save * save_every
 
-    def save(carry, _):
+    def step(P, carry):
+        P, w = P
+        sc, m, dt, t0 = unpack(P)
         state, acc, f_prev = carry
-        if save_every == 1:
-            state, _ = one_step(state, None)
-        else:
-            state, _ = jax.lax.scan(one_step, state, None, length=save_every)
+        state = guarded_step(sc, m, dt, t0)(state, None)[0]
         y, k, code, _ = state
-        f = _point_cost(scene, weights, t0 + k * dt, y)
+        f = _point_cost(sc, w, t0 + k * dt, y)
         f = jnp.where(code == OK, f, jnp.nan)
-        acc = acc + 0.5 * (f_prev + f) * (dt * save_every)
-        return (state, acc, f), None
+        new = acc + 0.5 * (f_prev + f) * (dt * save_every)
+        if save_every > 1:
+            at_save = k % save_every == 0
+            new = jnp.where(at_save, new, acc)
+            f = jnp.where(at_save, f, f_prev)
+        return state, new, f
+
+    def observe(P, carry):
+        return ()
 
     y0 = scene.y0
     i32 = jnp.int32
     state = (y0, jnp.array(0, i32), jnp.array(OK, i32), jnp.array(-1, i32))
     f0 = _point_cost(scene, weights, t0, y0)
     carry = (state, jnp.zeros_like(f0), f0)
-    if block is None:
-        carry, _ = jax.lax.scan(save, carry, None, length=n_save)
-        return carry[1]
-    n_blocks = -(-n_save // block)
-    padded = n_blocks * block != n_save
-
-    def save_or_skip(carry, i):
-        # The last block may run past n_save: those saves leave the carry alone
-        # (one compiled block for all, rather than a second scan for the tail).
-        new, _ = save(carry, None)
-        if padded:
-            new = jax.tree.map(lambda a, b: jnp.where(i < n_save, a, b), new, carry)
-        return new, None
-
-    # prevent_cse=False is safe (and lighter) under scan (see jax.checkpoint docs).
-    @functools.partial(jax.checkpoint, prevent_cse=False)
-    def block_fn(carry, b):
-        carry, _ = jax.lax.scan(save_or_skip, carry, b * block + jnp.arange(block))
-        return carry, None
-
-    carry, _ = jax.lax.scan(block_fn, carry, jnp.arange(n_blocks))
-    return carry[1]
+    checkpoint = n_steps if block is None else block * save_every
+    _, (_, cost, _) = run(
+        step, observe, (params, weights), carry, n_steps, 1, checkpoint=checkpoint, program=program
+    )
+    return cost
 
 
 # --------------------------------------------------------------------------
@@ -374,6 +368,7 @@ def expected_cost(
     *,
     save_every: int = 1,
     checkpoint_every: int | str | None = "auto",
+    program: str = "auto",
 ) -> Array:
     """Mean `rollout_cost` over a batch of initial states, for given gains.
 
@@ -385,8 +380,8 @@ def expected_cost(
     - `k_R`, `k_Omega`: gains, shape `()` or `(3,)`.
     - `R0`: initial attitudes, shape `(B, 3, 3)`.
     - `Omega0`: initial rates, shape `(B, 3)`.
-    - `method`, `dt`, `n_steps`, `weights`, `save_every`, `checkpoint_every`:
-      as in `rollout_cost`.
+    - `method`, `dt`, `n_steps`, `weights`, `save_every`, `checkpoint_every`,
+      `program`: as in `rollout_cost`.
 
     **Returns:** the mean cost, shape `()`.
     """
@@ -401,6 +396,7 @@ def expected_cost(
             weights,
             save_every=save_every,
             checkpoint_every=checkpoint_every,
+            program=program,
         )
 
     return jnp.mean(jax.vmap(one)(R0, Omega0))

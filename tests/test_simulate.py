@@ -352,7 +352,9 @@ def test_program_size_does_not_grow_with_n_steps(method):
         for n, k in [(10, 1), (10_000, 1), (10_000, 100)]
     }
     counts = {key: _count_eqns(j) for key, j in jaxprs.items()}
-    assert len(set(counts.values())) == 1, counts
+    assert counts[(10, 1)] == counts[(10_000, 1)], counts
+    # save_every > 1 adds the inner scan of a save block, nothing per step
+    assert 0 <= counts[(10_000, 100)] - counts[(10, 1)] <= 2, counts
     assert counts[(10, 1)] > 50  # the counter does look inside the scans
     assert sorted(_scan_lengths(jaxprs[(10_000, 100)])) == [100, 100]
 

@@ -1,0 +1,609 @@
+"""The execution engine: how every fixed-step run executes.
+
+`simulate`, `rollout_cost` / `expected_cost`, `sweep` and `tune` all step a
+carry with a pure step function and save observations every ``save_every``
+steps. They hand that loop to `run`, which picks the program for what the call
+is, with no flag for the user to know:
+
+- **a single run** executes the array program: ``lax.scan`` over the step as
+  written (3-vectors and 3x3 matrices), the fastest layout for one trajectory;
+- **a batch under ``vmap``** executes the scalarized program
+  (`so3jax._scalarize`): every scalar component of the carry is its own
+  contiguous ``(B,)`` array and a step is one fused elementwise kernel (a
+  structure-of-arrays layout). The switch is a `jax.custom_batching.custom_vmap`
+  rule, so nested ``vmap`` (gains x attitudes) and ``vmap`` inside ``jit`` take it;
+- **a differentiated run** takes its tangents and cotangents from the
+  engine's own programs, never from JAX's transpose of the forward scan:
+
+  - *forward mode* (``jvp``, ``jacfwd``) runs one scan of the step and its
+    tangent (``jax.jvp`` of one step), scalarized when batched (``jacfwd``
+    batches the tangents, the primal stays unbatched);
+  - *reverse mode* (``grad``, ``vjp``) runs a **discrete adjoint**: the exact
+    transpose of the discrete steps, as a backward scan of ``jax.vjp`` of one
+    step (and of the observation at that step), with the states recomputed from
+    checkpoints every ``K ~ sqrt(n_steps)`` steps, so temporary memory grows like
+    ``sqrt(n_steps)``, not ``n_steps``. It equals plain autodiff of the same
+    steps to round-off.
+
+  Both hang on one ``jax.custom_jvp`` whose tangent is a
+  `jax.custom_derivatives.linear_call`: forward mode evaluates the tangent
+  program, reverse mode transposes the ``linear_call`` into the adjoint program.
+  JAX ships no batching rule for ``linear_call``; `_register_linear_call_batching`
+  adds one (vmap the program and its transpose), so ``vmap(grad(...))`` and
+  ``jacfwd`` (a ``vmap`` of ``jvp``) work.
+
+Every program exists in both layouts (array and scalarized); a step with a
+primitive the scalarizer does not handle (a loop, dynamic indexing) runs the
+array program in every case, with a warning.
+
+References: A. Griewank, A. Walther, *Evaluating Derivatives*, SIAM 2008
+(discrete adjoints, ch. 3; checkpointing, ch. 12); JAX's ``linear_call``
+docstring (a linear function with a custom transpose).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import warnings
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.custom_batching import custom_vmap
+from jax.custom_derivatives import SymbolicZero, linear_call
+
+from . import _scalarize as sc
+
+__all__ = ["run", "checkpoint_length"]
+
+
+# --------------------------------------------------------------------------
+# pytrees split into float leaves (differentiable) and the rest
+# --------------------------------------------------------------------------
+
+
+def _is_float(x) -> bool:
+    return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
+
+
+def _floats(tree) -> list:
+    return [x for x in jax.tree.leaves(tree) if _is_float(x)]
+
+
+def _with_floats(tree, floats):
+    leaves, treedef = jax.tree.flatten(tree)
+    it = iter(floats)
+    new = [next(it) if _is_float(x) else x for x in leaves]
+    return jax.tree.unflatten(treedef, new)
+
+
+def _tangent_tree(primal, float_tangents):
+    """A tangent pytree for ``primal``: the given float tangents, float0 zeros elsewhere."""
+    leaves, treedef = jax.tree.flatten(primal)
+    it = iter(float_tangents)
+    new = [next(it) if _is_float(x) else np.zeros(jnp.shape(x), jax.dtypes.float0) for x in leaves]
+    return jax.tree.unflatten(treedef, new)
+
+
+def checkpoint_length(n_steps: int) -> int:
+    """Steps per checkpointed segment of the adjoint: about ``sqrt(n_steps)``."""
+    return max(1, math.ceil(math.sqrt(n_steps)))
+
+
+# --------------------------------------------------------------------------
+# array / scalarized programs behind one custom_vmap
+# --------------------------------------------------------------------------
+
+
+#: The layout each program takes when batched (see `_dual`).
+BATCHED_LAYOUT = {"run": "scalar", "tangent": "array", "adjoint": "array"}
+
+
+def _dual(array_fn: Callable, scalar_fn: Callable, what: str, warn: bool = False) -> Callable:
+    """``array_fn`` when unbatched; ``vmap`` of ``scalar_fn`` when batched.
+
+    ``scalar_fn`` raises `ScalarizeError` at trace time for an unsupported
+    primitive; the batched call then vmaps ``array_fn`` (with a warning if
+    ``warn``: the caller asked for the scalarized program).
+    """
+    fn = custom_vmap(array_fn)
+
+    @fn.def_vmap
+    def _rule(axis_size, in_batched, *args):
+        axes = tuple(jax.tree.map(lambda b: 0 if b else None, ib) for ib in in_batched)
+        if BATCHED_LAYOUT[what] == "array":
+            out = jax.vmap(array_fn, in_axes=axes)(*args)
+            return out, jax.tree.map(lambda _: True, out)
+        try:
+            out = jax.vmap(scalar_fn, in_axes=axes)(*args)
+        except sc.ScalarizeError as e:
+            warnings.warn(f"{e}; the batched {what} runs the array program (slower)", stacklevel=2)
+            out = jax.vmap(array_fn, in_axes=axes)(*args)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return fn
+
+
+#: Scalar operations between optimization barriers in the scalarized adjoint step.
+ADJOINT_BARRIER_EVERY = 2000
+
+
+def _with_barriers(fn):
+    def wrapped(flat):
+        with sc.barriers(ADJOINT_BARRIER_EVERY):
+            return fn(flat)
+
+    return wrapped
+
+
+class _Loop:
+    """The programs of one fixed-step loop (forward, tangent, adjoint), both layouts."""
+
+    def __init__(self, step, observe, n_steps: int, save_every: int, K: int):
+        self.step, self.observe = step, observe
+        self.n, self.save_every, self.n_save = n_steps, save_every, n_steps // save_every
+        self.K = min(K, n_steps)
+        self.S = -(-n_steps // self.K)
+
+    def _repeat(self, fn, x):
+        """``save_every`` applications of ``fn`` under ``lax.scan``."""
+        return jax.lax.scan(lambda x, _: (fn(x), None), x, None, length=self.save_every)[0]
+
+    # ---------------- forward ----------------
+
+    def fwd_array(self, P, c0):
+        step, obs = self.step, self.observe
+
+        def block(c, _):
+            if self.save_every == 1:
+                c = step(P, c)
+            else:
+                c = jax.lax.scan(lambda c, _: (step(P, c), None), c, None, length=self.save_every)[
+                    0
+                ]
+            return c, obs(P, c)
+
+        cN, ys = jax.lax.scan(block, c0, None, length=self.n_save)
+        return ys, cN
+
+    def fwd_checkpointed(self, P, c0):
+        """The array program with checkpointed segments: what plain autodiff differentiates.
+
+        Save blocks are grouped into segments of about ``K`` steps, each under
+        `jax.checkpoint`, so reverse mode stores one carry per segment and
+        recomputes a segment's residuals when it transposes it: memory
+        ``~ n / K + K`` steps instead of ``n``. The last segment is padded
+        with blocks that leave the carry alone.
+        """
+        step, obs = self.step, self.observe
+        m = max(1, min(self.n_save, round(self.K / self.save_every)))
+        S = -(-self.n_save // m)
+        padded = S * m != self.n_save
+
+        def block(c, i):
+            c1 = step(P, c) if self.save_every == 1 else self._repeat(lambda c: step(P, c), c)
+            o = obs(P, c1)
+            if padded:
+                c1 = jax.tree.map(lambda a, b: jnp.where(i < self.n_save, a, b), c1, c)
+            return c1, o
+
+        @functools.partial(jax.checkpoint, prevent_cse=False)
+        def segment(c, s):
+            return jax.lax.scan(block, c, s * m + jnp.arange(m))
+
+        cN, ys = jax.lax.scan(segment, c0, jnp.arange(S))
+        ys = jax.tree.map(lambda a: a.reshape((S * m,) + a.shape[2:])[: self.n_save], ys)
+        return ys, cN
+
+    def fwd_scalar(self, P, c0):
+        ex = (P, c0)
+        body, _ = sc.flat_program(lambda pc: (pc[0], self.step(*pc)), ex)
+        obs, obs_struct = sc.flat_program(lambda pc: self.observe(*pc), ex)
+
+        def block(flat, _):
+            if self.save_every == 1:
+                flat = body(flat)
+            else:
+                flat = jax.lax.scan(
+                    lambda f, _: (body(f), None), flat, None, length=self.save_every
+                )[0]
+            return flat, obs(flat)
+
+        flat, ys = jax.lax.scan(block, sc.split(ex), None, length=self.n_save)
+        _, cN = sc.join(flat, jax.eval_shape(lambda: ex))
+        return sc.join(ys, obs_struct, (self.n_save,)), cN
+
+    # ---------------- tangent (forward mode) ----------------
+
+    def _tstep(self, x):
+        P, c, dP, dc = x
+
+        def g(Pf, cf):
+            c1 = self.step(_with_floats(P, Pf), _with_floats(c, cf))
+            return _floats(c1), c1
+
+        _, dc1, c1 = jax.jvp(g, (_floats(P), _floats(c)), (dP, dc), has_aux=True)
+        return P, c1, dP, dc1
+
+    def _tobs(self, x):
+        P, c, dP, dc = x
+        o = lambda Pf, cf: self.observe(_with_floats(P, Pf), _with_floats(c, cf))
+        return jax.jvp(o, (_floats(P), _floats(c)), (dP, dc))[1]
+
+    def tan_array(self, P, c0, dP, dc0):
+        def block(x, _):
+            if self.save_every == 1:
+                x = self._tstep(x)
+            else:
+                x = jax.lax.scan(
+                    lambda x, _: (self._tstep(x), None), x, None, length=self.save_every
+                )[0]
+            return x, self._tobs(x)
+
+        x, dys = jax.lax.scan(block, (P, c0, dP, dc0), None, length=self.n_save)
+        return dys, x[3]
+
+    def tan_scalar(self, P, c0, dP, dc0):
+        ex = (P, c0, dP, dc0)
+        body, _ = sc.flat_program(self._tstep, ex)
+        tobs, tobs_struct = sc.flat_program(self._tobs, ex)
+
+        def block(flat, _):
+            if self.save_every == 1:
+                flat = body(flat)
+            else:
+                flat = jax.lax.scan(
+                    lambda f, _: (body(f), None), flat, None, length=self.save_every
+                )[0]
+            return flat, tobs(flat)
+
+        flat, dys = jax.lax.scan(block, sc.split(ex), None, length=self.n_save)
+        x = sc.join(flat, jax.eval_shape(lambda: ex))
+        return sc.join(dys, tobs_struct, (self.n_save,)), x[3]
+
+    # ---------------- adjoint (reverse mode) ----------------
+
+    def _masked_step(self, P, c, j):
+        """One step, or nothing past the end (the last segment is padded)."""
+        c1 = self.step(P, c)
+        return jax.tree.map(lambda a, b: jnp.where(j < self.n, a, b), c1, c)
+
+    def _vjp_step(self, x):
+        """Cotangents through step ``j`` and the observation after it, accumulated.
+
+        ``x = (P, c_j, lam, acc, ct_obs, is_save, valid)``: ``lam`` is the
+        cotangent of the state after step ``j`` (from later steps), ``ct_obs``
+        the cotangent of the observation of that state (used where ``is_save``).
+        Returns the cotangent of ``c_j`` and ``acc`` plus the parameters' share.
+        """
+        P, c, lam, acc, ct_o, is_save, valid = x
+
+        def h(Pf, cf):
+            Pp = _with_floats(P, Pf)
+            c1 = self.step(Pp, _with_floats(c, cf))
+            return _floats(c1), self.observe(Pp, c1)
+
+        _, pull = jax.vjp(h, _floats(P), _floats(c))
+        ct_o = jax.tree.map(lambda a: a * is_save.astype(a.dtype), ct_o)
+        gP, gc = pull((lam, ct_o))
+        lam = [jnp.where(valid, g, l) for g, l in zip(gc, lam, strict=True)]
+        acc = [a + jnp.where(valid, g, jnp.zeros_like(g)) for a, g in zip(acc, gP, strict=True)]
+        return lam, acc
+
+    def _segment_cts(self, ct_obs, s):
+        """Observation cotangents for the steps of segment ``s`` (zero off save points)."""
+        j = s * self.K + jnp.arange(self.K)
+        m = (j + 1) // self.save_every - 1
+        is_save = ((j + 1) % self.save_every == 0) & (j < self.n)
+        m = jnp.clip(m, 0, self.n_save - 1)
+        return j, jax.tree.map(lambda a: a[m], ct_obs), is_save
+
+    def adj_array(self, P, c0, ct_obs, ct_cN):
+        K, S = self.K, self.S
+
+        def advance(c, s):  # one segment, saving nothing
+            def one(c, i):
+                return self._masked_step(P, c, s * K + i), None
+
+            return jax.lax.scan(one, c, jnp.arange(K))[0], c
+
+        _, ckpts = jax.lax.scan(advance, c0, jnp.arange(S))
+
+        def segment(carry, s_ck):
+            lam, acc = carry
+            s, ck = s_ck
+
+            def one(c, i):
+                return self._masked_step(P, c, s * K + i), c
+
+            _, states = jax.lax.scan(one, ck, jnp.arange(K))
+            j, cts, is_save = self._segment_cts(ct_obs, s)
+
+            def back(carry, x):
+                lam, acc = carry
+                c, ct_o, sv, jj = x
+                return self._vjp_step((P, c, lam, acc, ct_o, sv, jj < self.n)), None
+
+            (lam, acc), _ = jax.lax.scan(back, (lam, acc), (states, cts, is_save, j), reverse=True)
+            return (lam, acc), None
+
+        acc0 = [jnp.zeros_like(p) for p in _floats(P)]
+        (lam, acc), _ = jax.lax.scan(
+            segment, (list(ct_cN), acc0), (jnp.arange(S), ckpts), reverse=True
+        )
+        return acc, lam
+
+    def adj_scalar(self, P, c0, ct_obs, ct_cN):
+        K, S = self.K, self.S
+        j0 = jnp.zeros((), jnp.int32)
+        ex_step = (P, c0, j0)
+        mstep, _ = sc.flat_program(lambda x: (x[0], self._masked_step(*x), x[2] + 1), ex_step)
+        nP = len(sc.split(P))
+        nc = len(sc.split(c0))
+
+        def advance_flat(fc, s, keep):
+            """K masked steps from the flat state ``fc``; the states before each if ``keep``."""
+            flat = sc.split(P) + fc + [jnp.asarray(s * K, jnp.int32)]
+
+            def one(f, _):
+                return mstep(f), (f[nP : nP + nc] if keep else None)
+
+            f, ys = jax.lax.scan(one, flat, None, length=K)
+            return f[nP : nP + nc], ys
+
+        def ckpt(fc, s):
+            return advance_flat(fc, s, False)[0], fc
+
+        _, ck_flat = jax.lax.scan(ckpt, sc.split(c0), jnp.arange(S))
+
+        lam0 = list(ct_cN)
+        acc0 = [jnp.zeros_like(p) for p in _floats(P)]
+        ct_o_ex = jax.tree.map(lambda a: a[0], ct_obs)
+        ex_back = (P, c0, lam0, acc0, ct_o_ex, jnp.array(True), jnp.array(True))
+        back_flat, _ = sc.flat_program(self._vjp_step, ex_back)
+        back_flat = _with_barriers(back_flat)
+        n_lam = len(sc.split(lam0))
+        n_acc = len(sc.split(acc0))
+
+        def segment(carry, s_ck):
+            flam, facc = carry
+            s, fck = s_ck
+            _, states = advance_flat(list(fck), s, True)
+            j, cts, is_save = self._segment_cts(ct_obs, s)
+
+            def back(carry, x):
+                flam, facc = carry
+                fc, ct_o, sv, jj = x
+                flat = sc.split(P) + list(fc) + flam + facc + sc.split(ct_o) + [sv, jj < self.n]
+                out = back_flat(flat)
+                return (out[:n_lam], out[n_lam : n_lam + n_acc]), None
+
+            (flam, facc), _ = jax.lax.scan(
+                back, (flam, facc), (states, cts, is_save, j), reverse=True
+            )
+            return (flam, facc), None
+
+        (flam, facc), _ = jax.lax.scan(
+            segment, (sc.split(lam0), sc.split(acc0)), (jnp.arange(S), ck_flat), reverse=True
+        )
+        lam = sc.join(flam, jax.eval_shape(lambda: lam0))
+        acc = sc.join(facc, jax.eval_shape(lambda: acc0))
+        return acc, lam
+
+
+# --------------------------------------------------------------------------
+# linear_call under vmap
+# --------------------------------------------------------------------------
+
+
+def _register_linear_call_batching() -> bool:
+    """Give ``linear_call`` a batching rule: vmap its program and its transpose.
+
+    JAX (0.4 to 0.10 at least) has none, so ``vmap`` of a gradient through a
+    ``linear_call`` raises ``NotImplementedError``. The rule batches the
+    callee with every linear input and output batched, and its transpose (made
+    lazily, as JAX does) with the residuals batched as given and every
+    cotangent batched. Returns False when JAX's internals have moved (the
+    engine then falls back to plain autodiff of the array program).
+    """
+    try:
+        from jax._src import custom_derivatives as cd
+        from jax._src.interpreters import batching, partial_eval as pe
+    except ImportError:  # pragma: no cover - JAX internals moved
+        return False
+    p = getattr(cd, "linear_call_p", None)
+    if p is None or not hasattr(batching, "fancy_primitive_batchers"):  # pragma: no cover
+        return False
+    if p in batching.fancy_primitive_batchers:
+        return True
+
+    def rule(axis_data, args, dims, *, callee, transpose_thunk, num_callee_consts, num_res):
+        size = axis_data.size
+        n_pre = num_callee_consts + num_res
+        pre = [
+            x if d is None else batching.moveaxis(x, d, 0)
+            for x, d in zip(args[:n_pre], dims[:n_pre], strict=True)
+        ]
+        pre_b = [d is not None for d in dims[:n_pre]]
+        lin = [
+            batching.bdim_at_front(x, d, size)
+            for x, d in zip(args[n_pre:], dims[n_pre:], strict=True)
+        ]
+        callee_b, _ = batching.batch_jaxpr(callee, axis_data, pre_b + [True] * len(lin), True)
+        res_b = pre_b[num_callee_consts:]
+        n_out = len(callee.out_avals)
+
+        @pe._memoize
+        def thunk():
+            t_jaxpr, t_consts = transpose_thunk()
+            in_b = [False] * len(t_consts) + res_b + [True] * n_out
+            t_b, _ = batching.batch_jaxpr(t_jaxpr, axis_data, in_b, True)
+            return t_b, t_consts
+
+        out = p.bind(
+            *pre,
+            *lin,
+            callee=callee_b,
+            transpose_thunk=thunk,
+            num_callee_consts=num_callee_consts,
+            num_res=num_res,
+        )
+        return out, [0] * len(out)
+
+    batching.fancy_primitive_batchers[p] = rule
+    return True
+
+
+_HAVE_LINEAR_CALL_BATCHING = _register_linear_call_batching()
+
+
+# --------------------------------------------------------------------------
+# the entry point
+# --------------------------------------------------------------------------
+
+
+_PROGRAMS = ("auto", "array", "scalar", "autodiff", "adjoint")
+
+
+def run(
+    step: Callable,
+    observe: Callable,
+    params,
+    carry0,
+    n_steps: int,
+    save_every: int = 1,
+    *,
+    checkpoint: int | None = None,
+    program: str = "auto",
+):
+    """Step ``carry0`` ``n_steps`` times; observe every ``save_every``-th state.
+
+    **Arguments:**
+
+    - `step`: ``step(params, carry) -> carry``, one step (pure; a carry may
+      hold integer leaves such as a step counter and a status code).
+    - `observe`: ``observe(params, carry) -> pytree`` of float arrays.
+    - `params`: a pytree of arrays the loop depends on; its float leaves (and
+      those of ``carry0``) are what derivatives flow to.
+    - `n_steps`, `save_every`: Python ints, ``n_steps % save_every == 0``.
+    - `checkpoint`: steps per checkpointed segment of the adjoint (default
+      about ``sqrt(n_steps)``; ``n_steps`` keeps every state).
+    - `program`: ``"auto"`` (the engine decides); ``"array"`` or ``"scalar"``
+      (one layout for the forward run whatever the batching: for benchmarks);
+      ``"autodiff"`` (the checkpointed array program, differentiated and
+      batched by JAX alone: the reference); ``"adjoint"`` (derivatives from the
+      engine's tangent program and discrete adjoint, layouts per
+      `BATCHED_LAYOUT`).
+
+    **Returns:** ``(observations, final carry)``; every observation leaf has a
+    leading axis of length ``n_steps // save_every`` (the states after steps
+    ``save_every, 2 save_every, ...``).
+    """
+    if program not in _PROGRAMS:
+        raise ValueError(f"program must be one of {_PROGRAMS}, got {program!r}")
+    K = checkpoint_length(n_steps) if checkpoint is None else int(checkpoint)
+    # Closed-over tracers (a reference that closes over a traced amplitude, say)
+    # become explicit parameters, so derivatives and batching see them.
+    step_c, step_consts = jax.closure_convert(step, params, carry0)
+    obs_c, obs_consts = jax.closure_convert(observe, params, carry0)
+    P = (params, step_consts, obs_consts)
+
+    def step_p(P, c):
+        return step_c(P[0], c, *P[1])
+
+    def obs_p(P, c):
+        return obs_c(P[0], c, *P[2])
+
+    loop = _Loop(step_p, obs_p, n_steps, save_every, K)
+    if program == "autodiff":
+        return loop.fwd_checkpointed(P, carry0)
+    if program == "adjoint" and _HAVE_LINEAR_CALL_BATCHING:
+        return _adjoint_run(loop, P, carry0)
+    if program == "array":
+        fwd = loop.fwd_array
+    elif program == "scalar":
+        fwd = _scalar_or_array(loop)
+    else:
+        fwd = _dual(loop.fwd_array, loop.fwd_scalar, "run")
+
+    # Derivatives: JAX's own jvp of the checkpointed array program (forward mode
+    # as one fused scan; reverse mode by JAX's transpose, memory ~sqrt(n)).
+    @jax.custom_jvp
+    def f(P, c0):
+        return fwd(P, c0)
+
+    @f.defjvp
+    def _f_jvp(primals, tangents):
+        return jax.jvp(loop.fwd_checkpointed, primals, tangents)
+
+    return f(P, carry0)
+
+
+def _adjoint_run(loop: _Loop, P, carry0):
+    """The run with the engine's own tangent program and discrete adjoint."""
+    fwd = _dual(loop.fwd_array, loop.fwd_scalar, "run")
+    tan = _dual(loop.tan_array, loop.tan_scalar, "tangent")
+    adj = _dual(loop.adj_array, loop.adj_scalar, "adjoint")
+
+    @jax.custom_jvp
+    def f(P, c0):
+        return fwd(P, c0)
+
+    def f_jvp(primals, tangents):
+        P, c0 = primals
+        out = fwd(P, c0)
+        dP, dc0 = tangents
+        tl = _floats_with_zeros((dP, dc0), (P, c0))
+        nz = [not isinstance(t, SymbolicZero) for t in tl]
+        lin = [t for t, z in zip(tl, nz, strict=True) if z]
+        pf, cf = _floats(P), _floats(c0)
+
+        def fill(lin):
+            it = iter(lin)
+            full = [next(it) if z else jnp.zeros_like(x) for z, x in zip(nz, pf + cf, strict=True)]
+            return full[: len(pf)], full[len(pf) :]
+
+        def tangent(res, lin):
+            P, c0 = res
+            dPf, dcf = fill(lin)
+            dys, dcN = tan(P, c0, dPf, dcf)
+            return dys, dcN
+
+        def transpose(res, cts):
+            P, c0 = res
+            ct_ys, ct_cN = cts
+            gP, gc = adj(P, c0, ct_ys, ct_cN)
+            return [g for g, z in zip(list(gP) + list(gc), nz, strict=True) if z]
+
+        if not lin:
+            dys = jax.tree.map(jnp.zeros_like, out[0])
+            dcNf = [jnp.zeros_like(x) for x in _floats(out[1])]
+        else:
+            dys, dcNf = linear_call(tangent, transpose, (P, c0), lin)
+        dcN = _tangent_tree(out[1], dcNf)
+        return out, (dys, dcN)
+
+    f.defjvp(f_jvp, symbolic_zeros=True)
+    return f(P, carry0)
+
+
+def _scalar_or_array(loop: _Loop) -> Callable:
+    """The scalarized forward program, or the array one (with a warning) if it cannot be."""
+
+    def fwd(P, c0):
+        try:
+            return loop.fwd_scalar(P, c0)
+        except sc.ScalarizeError as e:
+            warnings.warn(f"{e}; running the array program instead", stacklevel=4)
+            return loop.fwd_array(P, c0)
+
+    return fwd
+
+
+def _floats_with_zeros(tangents, primals) -> list:
+    """Tangents of the float leaves of ``primals`` (symbolic zeros kept)."""
+    t_leaves = jax.tree.leaves(tangents, is_leaf=lambda x: isinstance(x, SymbolicZero))
+    p_leaves = jax.tree.leaves(primals)
+    return [t for t, p in zip(t_leaves, p_leaves, strict=True) if _is_float(p)]
