@@ -12,25 +12,27 @@ is, with no flag for the user to know:
   contiguous ``(B,)`` array and a step is one fused elementwise kernel (a
   structure-of-arrays layout). The switch is a `jax.custom_batching.custom_vmap`
   rule, so nested ``vmap`` (gains x attitudes) and ``vmap`` inside ``jit`` take it;
-- **a differentiated run** takes its tangents and cotangents from the
-  engine's own programs, never from JAX's transpose of the forward scan:
+- **a differentiated run** (``grad``, ``jvp``, ``jacfwd``) is JAX's own
+  derivative of the *checkpointed* array program (segments of about
+  ``sqrt(n_steps)`` steps under `jax.checkpoint`): forward mode is one fused
+  scan of the step and its tangent; reverse mode stores one carry per segment,
+  so its memory grows like ``sqrt(n_steps)``. The forward value of a
+  differentiated batch still comes from the scalarized program.
 
-  - *forward mode* (``jvp``, ``jacfwd``) runs one scan of the step and its
-    tangent (``jax.jvp`` of one step), scalarized when batched (``jacfwd``
-    batches the tangents, the primal stays unbatched);
-  - *reverse mode* (``grad``, ``vjp``) runs a **discrete adjoint**: the exact
-    transpose of the discrete steps, as a backward scan of ``jax.vjp`` of one
-    step (and of the observation at that step), with the states recomputed from
-    checkpoints every ``K ~ sqrt(n_steps)`` steps, so temporary memory grows like
-    ``sqrt(n_steps)``, not ``n_steps``. It equals plain autodiff of the same
-    steps to round-off.
-
-  Both hang on one ``jax.custom_jvp`` whose tangent is a
-  `jax.custom_derivatives.linear_call`: forward mode evaluates the tangent
-  program, reverse mode transposes the ``linear_call`` into the adjoint program.
-  JAX ships no batching rule for ``linear_call``; `_register_linear_call_batching`
-  adds one (vmap the program and its transpose), so ``vmap(grad(...))`` and
-  ``jacfwd`` (a ``vmap`` of ``jvp``) work.
+``program="adjoint"`` swaps in the engine's own derivative programs, hung on one
+``jax.custom_jvp`` whose tangent is a `jax.custom_derivatives.linear_call`:
+forward mode runs a scan of ``jax.jvp`` of one step, and reverse mode transposes
+the ``linear_call`` into a **discrete adjoint** (a backward scan of ``jax.vjp`` of
+one step and its observation, with the states recomputed from checkpoints every
+``K ~ sqrt(n_steps)`` steps), exact to round-off against plain autodiff. JAX ships
+no batching rule for ``linear_call``; `_register_linear_call_batching` adds one,
+so ``vmap(grad(...))`` and ``jacfwd`` work through it. Both its programs exist in
+the scalarized layout too (`BATCHED_LAYOUT`), which would fuse the backward step
+into one kernel, but XLA on CPU takes minutes to compile it (the scalarized
+adjoint step of the seed has about 9400 scalar operations: 24 s to compile
+unbatched, 100 s under ``vmap``, against about 3 s for the forward step), so the
+default keeps the array layout. See ``benchmarks/README.md`` for the measured
+ratios.
 
 Every program exists in both layouts (array and scalarized); a step with a
 primitive the scalarizer does not handle (a loop, dynamic indexing) runs the
