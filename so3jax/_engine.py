@@ -89,6 +89,21 @@ def _tangent_tree(primal, float_tangents):
     return jax.tree.unflatten(treedef, new)
 
 
+def _segment_blocks(n: int, target: int) -> int:
+    """Blocks per segment: a divisor of ``n`` within 2x of ``target`` if there is one.
+
+    A divisor needs no padded tail (whose masks cost a select per carry leaf
+    and step); otherwise ``target`` itself, and the last segment is padded.
+    """
+    target = max(1, min(n, target))
+    for d in sorted(
+        range(max(1, target // 2), min(n, 2 * target) + 1), key=lambda d: abs(d - target)
+    ):
+        if n % d == 0:
+            return d
+    return target
+
+
 def checkpoint_length(n_steps: int) -> int:
     """Steps per checkpointed segment of the adjoint: about ``sqrt(n_steps)``."""
     return max(1, math.ceil(math.sqrt(n_steps)))
@@ -180,7 +195,7 @@ class _Loop:
         with blocks that leave the carry alone.
         """
         step, obs = self.step, self.observe
-        m = max(1, min(self.n_save, round(self.K / self.save_every)))
+        m = _segment_blocks(self.n_save, max(1, round(self.K / self.save_every)))
         S = -(-self.n_save // m)
         padded = S * m != self.n_save
 
@@ -536,10 +551,24 @@ def run(
     def f(P, c0):
         return fwd(P, c0)
 
-    @f.defjvp
     def _f_jvp(primals, tangents):
-        return jax.jvp(loop.fwd_checkpointed, primals, tangents)
+        # Only the inputs with nonzero tangents are differentiated: dense zero
+        # tangents for every other array would add a tangent term to each
+        # operation that touches them (35 % more time for DiffTune's jacfwd).
+        p_leaves, treedef = jax.tree.flatten(primals)
+        t_leaves = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
+        nz = [not isinstance(t, SymbolicZero) for t in t_leaves]
 
+        def g(*xs):
+            it = iter(xs)
+            full = [next(it) if z else p for z, p in zip(nz, p_leaves, strict=True)]
+            return loop.fwd_checkpointed(*jax.tree.unflatten(treedef, full))
+
+        xs = [p for p, z in zip(p_leaves, nz, strict=True) if z]
+        ts = [t for t, z in zip(t_leaves, nz, strict=True) if z]
+        return jax.jvp(g, xs, ts)
+
+    f.defjvp(_f_jvp, symbolic_zeros=True)
     return f(P, carry0)
 
 
