@@ -136,23 +136,12 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str, warn: bool = False
         try:
             out = jax.vmap(scalar_fn, in_axes=axes)(*args)
         except sc.ScalarizeError as e:
-            warnings.warn(f"{e}; the batched {what} runs the array program (slower)", stacklevel=2)
+            if warn:
+                warnings.warn(f"{e}; the batched {what} runs the array program", stacklevel=2)
             out = jax.vmap(array_fn, in_axes=axes)(*args)
         return out, jax.tree.map(lambda _: True, out)
 
     return fn
-
-
-#: Scalar operations between optimization barriers in the scalarized adjoint step.
-ADJOINT_BARRIER_EVERY = 2000
-
-
-def _with_barriers(fn):
-    def wrapped(flat):
-        with sc.barriers(ADJOINT_BARRIER_EVERY):
-            return fn(flat)
-
-    return wrapped
 
 
 class _Loop:
@@ -380,7 +369,6 @@ class _Loop:
         ct_o_ex = jax.tree.map(lambda a: a[0], ct_obs)
         ex_back = (P, c0, lam0, acc0, ct_o_ex, jnp.array(True), jnp.array(True))
         back_flat, _ = sc.flat_program(self._vjp_step, ex_back)
-        back_flat = _with_barriers(back_flat)
         n_lam = len(sc.split(lam0))
         n_acc = len(sc.split(acc0))
 

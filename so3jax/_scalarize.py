@@ -172,7 +172,6 @@ def _elementwise(prim, params, args):
             return folded
         shape = _bshape(xs)
         xs = [jnp.broadcast_to(x, shape) for x in xs]
-        _OPS[0] += 1
         return prim.bind(*xs, **params)
 
     if prim.multiple_results:  # pragma: no cover - no such elementwise primitive here
@@ -261,66 +260,8 @@ def _select_branches(index, results_per_branch):
     return outs
 
 
-#: With a value, `_eval` splits a long top-level program into pieces of about this
-#: many scalar operations with `jax.lax.optimization_barrier` on the values live across each
-#: cut, which bounds the size of XLA's fusions (see `barriers`).
-_BARRIER_EVERY: list = [None]
-_OPS = [0]  # scalar operations emitted so far (what `_eval` counts between cuts)
-
-
-class barriers:
-    """Context manager: scalarize with an optimization barrier every ``n`` scalar operations.
-
-    XLA fuses a scalarized program into one elementwise kernel. For a large
-    program (the adjoint of a step: its forward recomputation and its transpose,
-    over tens of thousands of scalars) the fusion passes then take minutes
-    (superlinear in the fusion size); cutting the program into pieces keeps
-    compile time near linear at the cost of spilling the live values at each cut.
-    """
-
-    def __init__(self, n: int | None):
-        self.n = n
-
-    def __enter__(self):
-        self.prev = _BARRIER_EVERY[0]
-        _BARRIER_EVERY[0] = self.n
-
-    def __exit__(self, *exc):
-        _BARRIER_EVERY[0] = self.prev
-
-
-def _cut(env, live_vars):
-    """Pass the traced components of the live values through one optimization barrier."""
-    slots, vals = [], []
-    for v in live_vars:
-        arr = env[v]
-        for idx in np.ndindex(*arr.shape):
-            x = arr[idx]
-            if isinstance(x, jax.Array) or isinstance(x, jax.core.Tracer):
-                slots.append((v, idx))
-                vals.append(x)
-    if not vals:
-        return
-    vals = jax.lax.optimization_barrier(vals)
-    for (v, idx), x in zip(slots, vals, strict=True):
-        if env[v].flags.writeable is False:
-            env[v] = env[v].copy()
-        env[v][idx] = x
-
-
-def _eval(jaxpr, consts, args, top: bool = True):
+def _eval(jaxpr, consts, args):
     env = {}
-    every = _BARRIER_EVERY[0] if top else None
-    mark = _OPS[0]
-    if every:
-        last_use = {}
-        for i, eqn in enumerate(jaxpr.eqns):
-            for v in eqn.invars:
-                if not isinstance(v, jex_core.Literal):
-                    last_use[v] = i
-        for v in jaxpr.outvars:
-            if not isinstance(v, jex_core.Literal):
-                last_use[v] = len(jaxpr.eqns)
 
     def read(v):
         if isinstance(v, jex_core.Literal):
@@ -331,7 +272,7 @@ def _eval(jaxpr, consts, args, top: bool = True):
         env[v] = c
     for v, a in zip(jaxpr.invars, args, strict=True):
         env[v] = a
-    for i, eqn in enumerate(jaxpr.eqns):
+    for eqn in jaxpr.eqns:
         ins = [read(v) for v in eqn.invars]
         outs = _apply(eqn, ins)
         if not eqn.primitive.multiple_results:
@@ -342,14 +283,11 @@ def _eval(jaxpr, consts, args, top: bool = True):
                 arr[()] = o
                 o = arr
             env[v] = o
-        if every and _OPS[0] - mark >= every and i + 1 < len(jaxpr.eqns):
-            _cut(env, [v for v in env if last_use.get(v, -1) > i])
-            mark = _OPS[0]
     return [read(v) for v in jaxpr.outvars]
 
 
 def _closed(cj, args):
-    return _eval(cj.jaxpr, [_const(c) for c in cj.consts], args, top=False)
+    return _eval(cj.jaxpr, [_const(c) for c in cj.consts], args)
 
 
 def _apply(eqn, ins):
@@ -412,7 +350,7 @@ def _apply(eqn, ins):
         cj = p.get("jaxpr") or p.get("call_jaxpr")
         if isinstance(cj, jex_core.ClosedJaxpr):
             return _closed(cj, ins)
-        return _eval(cj, [], ins, top=False)
+        return _eval(cj, [], ins)
     if name == "custom_jvp_call":
         return _closed(p["call_jaxpr"], ins)
     if name == "custom_vjp_call":
