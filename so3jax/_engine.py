@@ -105,7 +105,7 @@ def _segment_blocks(n: int, target: int) -> int:
 
 
 def checkpoint_length(n_steps: int) -> int:
-    """Steps per checkpointed segment of the adjoint: about ``sqrt(n_steps)``."""
+    """Steps per checkpointed segment: about ``sqrt(n_steps)``."""
     return max(1, math.ceil(math.sqrt(n_steps)))
 
 
@@ -118,12 +118,13 @@ def checkpoint_length(n_steps: int) -> int:
 BATCHED_LAYOUT = {"run": "scalar", "tangent": "array", "adjoint": "array"}
 
 
-def _dual(array_fn: Callable, scalar_fn: Callable, what: str, warn: bool = False) -> Callable:
+def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
     """``array_fn`` when unbatched; ``vmap`` of ``scalar_fn`` when batched.
 
     ``scalar_fn`` raises `ScalarizeError` at trace time for an unsupported
-    primitive; the batched call then vmaps ``array_fn`` (with a warning if
-    ``warn``: the caller asked for the scalarized program).
+    primitive (a loop, dynamic indexing, `jax.checkpoint` inside the step); the
+    batched call then vmaps ``array_fn``, silently: nobody asked for the
+    scalarized program.
     """
     fn = custom_vmap(array_fn)
 
@@ -135,9 +136,7 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str, warn: bool = False
             return out, jax.tree.map(lambda _: True, out)
         try:
             out = jax.vmap(scalar_fn, in_axes=axes)(*args)
-        except sc.ScalarizeError as e:
-            if warn:
-                warnings.warn(f"{e}; the batched {what} runs the array program", stacklevel=2)
+        except sc.ScalarizeError:
             out = jax.vmap(array_fn, in_axes=axes)(*args)
         return out, jax.tree.map(lambda _: True, out)
 
@@ -157,21 +156,19 @@ class _Loop:
         """``save_every`` applications of ``fn`` under ``lax.scan``."""
         return jax.lax.scan(lambda x, _: (fn(x), None), x, None, length=self.save_every)[0]
 
+    def _save_loop(self, body, observe, x0):
+        """``n_save`` blocks of ``save_every`` applications of ``body``, observed after each."""
+
+        def block(x, _):
+            x = body(x) if self.save_every == 1 else self._repeat(body, x)
+            return x, observe(x)
+
+        return jax.lax.scan(block, x0, None, length=self.n_save)
+
     # ---------------- forward ----------------
 
     def fwd_array(self, P, c0):
-        step, obs = self.step, self.observe
-
-        def block(c, _):
-            if self.save_every == 1:
-                c = step(P, c)
-            else:
-                c = jax.lax.scan(lambda c, _: (step(P, c), None), c, None, length=self.save_every)[
-                    0
-                ]
-            return c, obs(P, c)
-
-        cN, ys = jax.lax.scan(block, c0, None, length=self.n_save)
+        cN, ys = self._save_loop(lambda c: self.step(P, c), lambda c: self.observe(P, c), c0)
         return ys, cN
 
     def fwd_checkpointed(self, P, c0):
@@ -207,17 +204,7 @@ class _Loop:
         ex = (P, c0)
         body, _ = sc.flat_program(lambda pc: (pc[0], self.step(*pc)), ex)
         obs, obs_struct = sc.flat_program(lambda pc: self.observe(*pc), ex)
-
-        def block(flat, _):
-            if self.save_every == 1:
-                flat = body(flat)
-            else:
-                flat = jax.lax.scan(
-                    lambda f, _: (body(f), None), flat, None, length=self.save_every
-                )[0]
-            return flat, obs(flat)
-
-        flat, ys = jax.lax.scan(block, sc.split(ex), None, length=self.n_save)
+        flat, ys = self._save_loop(body, obs, sc.split(ex))
         _, cN = sc.join(flat, jax.eval_shape(lambda: ex))
         return sc.join(ys, obs_struct, (self.n_save,)), cN
 
@@ -239,33 +226,14 @@ class _Loop:
         return jax.jvp(o, (_floats(P), _floats(c)), (dP, dc))[1]
 
     def tan_array(self, P, c0, dP, dc0):
-        def block(x, _):
-            if self.save_every == 1:
-                x = self._tstep(x)
-            else:
-                x = jax.lax.scan(
-                    lambda x, _: (self._tstep(x), None), x, None, length=self.save_every
-                )[0]
-            return x, self._tobs(x)
-
-        x, dys = jax.lax.scan(block, (P, c0, dP, dc0), None, length=self.n_save)
+        x, dys = self._save_loop(self._tstep, self._tobs, (P, c0, dP, dc0))
         return dys, x[3]
 
     def tan_scalar(self, P, c0, dP, dc0):
         ex = (P, c0, dP, dc0)
         body, _ = sc.flat_program(self._tstep, ex)
         tobs, tobs_struct = sc.flat_program(self._tobs, ex)
-
-        def block(flat, _):
-            if self.save_every == 1:
-                flat = body(flat)
-            else:
-                flat = jax.lax.scan(
-                    lambda f, _: (body(f), None), flat, None, length=self.save_every
-                )[0]
-            return flat, tobs(flat)
-
-        flat, dys = jax.lax.scan(block, sc.split(ex), None, length=self.n_save)
+        flat, dys = self._save_loop(body, tobs, sc.split(ex))
         x = sc.join(flat, jax.eval_shape(lambda: ex))
         return sc.join(dys, tobs_struct, (self.n_save,)), x[3]
 

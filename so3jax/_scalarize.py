@@ -346,7 +346,7 @@ def _apply(eqn, ins):
         return _reduce(x, p["axes"], jnp.logical_or)
     if name == "reduce_prod":
         return _reduce(x, p["axes"], lambda a, b: a * b)
-    if name in ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint"):
+    if name in ("pjit", "jit", "closed_call", "core_call", "remat", "remat2", "checkpoint"):
         cj = p.get("jaxpr") or p.get("call_jaxpr")
         if isinstance(cj, jex_core.ClosedJaxpr):
             return _closed(cj, ins)
@@ -369,7 +369,7 @@ _STRUCTURAL = frozenset(
     """
     broadcast_in_dim reshape squeeze expand_dims transpose rev slice concatenate stack unstack
     split pad iota dot_general reduce_sum reduce_max reduce_min reduce_and reduce_or
-    reduce_prod pjit jit closed_call core_call remat checkpoint custom_jvp_call
+    reduce_prod pjit jit closed_call core_call remat remat2 checkpoint custom_jvp_call
     custom_vjp_call cond
     """.split()
 )
@@ -428,17 +428,9 @@ def scalar_body(step: Callable, example):
     leaves, tree = jax.tree.flatten(example)
     shapes = [jnp.shape(leaf) for leaf in leaves]
     dtypes = [jnp.result_type(leaf) for leaf in leaves]
-    sizes = [int(np.prod(sh, dtype=int)) for sh in shapes]
 
     def parts(flat):
-        out, i = [], 0
-        for sh, n in zip(shapes, sizes, strict=True):
-            a = _obj(n)
-            for k in range(n):
-                a[k] = flat[i + k]
-            out.append(a.reshape(sh))
-            i += n
-        return out
+        return _parts(flat, shapes)
 
     def body(flat):
         out = run(jax.tree.unflatten(tree, parts(flat)))
