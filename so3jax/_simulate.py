@@ -168,23 +168,6 @@ def guarded_step(scene, method, dt, t0, compensated: bool = False):
     return one_step
 
 
-def scan_steps(one_step, carry, length: int, scalarize: bool):
-    """``lax.scan`` of a carry-to-carry step, optionally over scalar components."""
-    if scalarize:
-        from ._scalarize import ScalarizeError, scalar_body
-
-        try:
-            split, body, join = scalar_body(lambda c: one_step(c, None)[0], carry)
-        except ScalarizeError as e:  # a scene or method with an unsupported primitive
-            import warnings
-
-            warnings.warn(f"{e}; running the array program instead", stacklevel=3)
-        else:
-            flat, _ = jax.lax.scan(lambda f, _: (body(f), None), split(carry), None, length=length)
-            return join(flat)
-    return jax.lax.scan(one_step, carry, None, length=length)[0]
-
-
 def _program(scalarize) -> str:
     """The engine's program for the ``scalarize`` override (``None``: the engine decides)."""
     if scalarize is None:

@@ -211,11 +211,11 @@ def rollout_cost(
     t0: float | Array = 0.0,
     program: str = "auto",
 ) -> Array:
-    """The tracking cost of a run, integrated as it goes, with checkpointed gradients.
+    """The tracking cost of a run without its trajectory, with checkpointed gradients.
 
     Equal to ``tracking_cost(simulate(scene, method, dt, n_steps, save_every),
     scene, weights)`` (the trapezoid over every ``save_every``-th step), but
-    nothing is saved: the forward pass keeps one state, and reverse mode
+    only the integrand is saved (one scalar per point), and reverse mode
     keeps one state per block of ``checkpoint_every`` steps and recomputes
     each block (`jax.checkpoint` around an inner `lax.scan`), so the memory of
     a gradient grows like ``n / B + B`` steps (``sqrt(n)`` for the default),
@@ -268,34 +268,31 @@ def _rollout(scene, method, dt, t0, weights, n_save: int, save_every: int, block
     params, unpack = split_scene(scene, method, dt, t0)
     n_steps = n_save * save_every
 
-    def step(P, carry):
-        P, w = P
-        sc, m, dt, t0 = unpack(P)
-        state, acc, f_prev = carry
-        state = guarded_step(sc, m, dt, t0)(state, None)[0]
-        y, k, code, _ = state
-        f = _point_cost(sc, w, t0 + k * dt, y)
-        f = jnp.where(code == OK, f, jnp.nan)
-        new = acc + 0.5 * (f_prev + f) * (dt * save_every)
-        if save_every > 1:
-            at_save = k % save_every == 0
-            new = jnp.where(at_save, new, acc)
-            f = jnp.where(at_save, f, f_prev)
-        return state, new, f
+    def step(P, state):
+        sc, m, dt, t0 = unpack(P[0])
+        return guarded_step(sc, m, dt, t0)(state, None)[0]
 
-    def observe(P, carry):
-        return ()
+    def observe(P, state):  # the integrand at every save_every-th step
+        sc, _, dt, t0 = unpack(P[0])
+        y, k, code, _ = state
+        return jnp.where(code == OK, _point_cost(sc, P[1], t0 + k * dt, y), jnp.nan)
 
     y0 = scene.y0
     i32 = jnp.int32
     state = (y0, jnp.array(0, i32), jnp.array(OK, i32), jnp.array(-1, i32))
-    f0 = _point_cost(scene, weights, t0, y0)
-    carry = (state, jnp.zeros_like(f0), f0)
     checkpoint = n_steps if block is None else block * save_every
-    _, (_, cost, _) = run(
-        step, observe, (params, weights), carry, n_steps, 1, checkpoint=checkpoint, program=program
+    fs, _ = run(
+        step,
+        observe,
+        (params, weights),
+        state,
+        n_steps,
+        save_every,
+        checkpoint=checkpoint,
+        program=program,
     )
-    return cost
+    f = jnp.concatenate([_point_cost(scene, weights, t0, y0)[None], fs])
+    return jnp.sum(0.5 * (f[1:] + f[:-1])) * (dt * save_every)
 
 
 # --------------------------------------------------------------------------
