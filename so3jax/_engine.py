@@ -382,7 +382,7 @@ def _register_linear_call_batching() -> bool:
     engine then falls back to plain autodiff of the array program).
     """
     try:
-        from jax._src import custom_derivatives as cd
+        from jax._src import core, custom_derivatives as cd
         from jax._src.interpreters import batching, partial_eval as pe
     except ImportError:  # pragma: no cover - JAX internals moved
         return False
@@ -391,6 +391,12 @@ def _register_linear_call_batching() -> bool:
         return False
     if p in batching.fancy_primitive_batchers:
         return True
+
+    def hoist(closed):
+        if not closed.consts:
+            return closed, []
+        jaxpr = pe.convert_constvars_jaxpr(closed.jaxpr)
+        return core.ClosedJaxpr(jaxpr, ()), list(closed.consts)
 
     def rule(axis_data, args, dims, *, callee, transpose_thunk, num_callee_consts, num_res):
         size = axis_data.size
@@ -405,6 +411,9 @@ def _register_linear_call_batching() -> bool:
             for x, d in zip(args[n_pre:], dims[n_pre:], strict=True)
         ]
         callee_b, _ = batching.batch_jaxpr(callee, axis_data, pre_b + [True] * len(lin), True)
+        # linear_call evaluates its callee without consts: constants that batching
+        # introduced (broadcasts, iotas) become leading callee-const arguments.
+        callee_b, hoisted = hoist(callee_b)
         res_b = pre_b[num_callee_consts:]
         n_out = len(callee.out_avals)
 
@@ -413,14 +422,16 @@ def _register_linear_call_batching() -> bool:
             t_jaxpr, t_consts = transpose_thunk()
             in_b = [False] * len(t_consts) + res_b + [True] * n_out
             t_b, _ = batching.batch_jaxpr(t_jaxpr, axis_data, in_b, True)
-            return t_b, t_consts
+            t_b, t_hoisted = hoist(t_b)
+            return t_b, [*t_hoisted, *t_consts]
 
         out = p.bind(
+            *hoisted,
             *pre,
             *lin,
             callee=callee_b,
             transpose_thunk=thunk,
-            num_callee_consts=num_callee_consts,
+            num_callee_consts=len(hoisted) + num_callee_consts,
             num_res=num_res,
         )
         return out, [0] * len(out)

@@ -150,10 +150,15 @@ def test_batched_equals_loop_and_single():
     np.testing.assert_array_equal(batched[0], scal[0])
 
 
+#: A closed-over constant: batching turns it into a const of linear_call's callee
+#: (which linear_call evaluates without consts unless the rule hoists them).
+_W = np.array([1.0, 2.0, 3.0])
+
+
 def _toy(P, program, K=None):
     """A small nonlinear loop with an integer counter in its carry."""
-    step = lambda P, c: (c[0] + 0.1 * jnp.sin(P * c[0]) + 0.01 * P**2, c[1] + 1)
-    observe = lambda P, c: jnp.sum(c[0] ** 2)
+    step = lambda P, c: (c[0] + 0.1 * jnp.sin(P * c[0] * _W) + 0.01 * P**2, c[1] + 1)
+    observe = lambda P, c: jnp.sum(_W * c[0] ** 2)
     c0 = (jnp.array([0.1, 0.4, -0.3]), jnp.array(0, jnp.int32))
     ys, cN = _engine.run(step, observe, P, c0, 21, 3, checkpoint=K, program=program)
     return jnp.sum(ys) + jnp.sum(jnp.cos(cN[0]))
