@@ -304,6 +304,9 @@ def _apply(eqn, ins):
         return np.broadcast_to(x.reshape(expanded), shape)
     if name == "reshape":
         return x.reshape(p["new_sizes"])
+    if name in ("reshard", "sharding_constraint"):
+        # A layout annotation (e.g. `zeros_like` of a sharded array): components carry none.
+        return x
     if name == "squeeze":
         return x.reshape(tuple(n for d, n in enumerate(x.shape) if d not in p["dimensions"]))
     if name == "expand_dims":
@@ -370,7 +373,7 @@ _STRUCTURAL = frozenset(
     broadcast_in_dim reshape squeeze expand_dims transpose rev slice concatenate stack unstack
     split pad iota dot_general reduce_sum reduce_max reduce_min reduce_and reduce_or
     reduce_prod pjit jit closed_call core_call remat remat2 checkpoint custom_jvp_call
-    custom_vjp_call cond
+    custom_vjp_call cond reshard sharding_constraint
     """.split()
 )
 

@@ -58,6 +58,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._integrators import RKMK4, AbstractLieSolver
+from ._quadrotor import Quadrotor, _restart
 from ._simulate import simulate
 from ._so3 import random_rotation
 from ._stability import SAFETY, stable_dt
@@ -128,6 +129,15 @@ class SweepResult:
     - `params`: the swept scene parameters by name, one value per column
       ``i``, shape `(N, ...)` (empty without ``params``); column
       ``i = p * n_attitudes + a`` is combination ``p`` from attitude ``a``.
+    - `metrics`: further per-run statistics by name, shape `(G, N)` (a
+      quadrotor sweep: ``final_position_error``, ``max_position_error``,
+      ``rms_position_error``, ``min_thrust_axis_up``; NaN where a run failed).
+    - `position_threshold`: a quadrotor sweep's settling threshold on ``|e_x|``
+      (m); ``None`` for an attitude scene.
+
+    For a quadrotor, ``Psi``, ``e_Omega`` and the settling test are taken against
+    the commanded attitude ``Rc``, and settling also needs ``|e_x| <
+    position_threshold``.
     """
 
     k_R: np.ndarray
@@ -150,6 +160,8 @@ class SweepResult:
     save_every: int
     refine: int
     params: dict = dataclasses.field(default_factory=dict)
+    metrics: dict = dataclasses.field(default_factory=dict)
+    position_threshold: float | None = None
 
     @property
     def diverged(self) -> np.ndarray:
@@ -310,6 +322,7 @@ class SweepResult:
             "n_attitudes": int(self.R0.shape[0]),
             "n_runs": int(self.cost.size),
             "threshold": self.threshold,
+            "position_threshold": self.position_threshold,
             "horizon": self.dt * self.n_steps,
             "dt": self.dt,
             "outcomes": counts,
@@ -339,7 +352,8 @@ class SweepResult:
             (
                 "settled",
                 c["settled"],
-                f"Psi < {self.threshold:g} within {self.dt * self.n_steps:g} s",
+                f"Psi < {self.threshold:g}{self._position_note()} within "
+                f"{self.dt * self.n_steps:g} s",
             ),
             ("not settled", c["not_settled"], "finite, did not settle within the horizon"),
             (
@@ -353,10 +367,17 @@ class SweepResult:
         lines = [f"{'outcome':<12} {'runs':>8} {'share':>7}  note"]
         lines += [f"{k:<12} {v:>8d} {v / n:>7.1%}  {note}" for k, v, note in rows]
         beyond = int(np.sum(self.dt > self.stable_dt))
-        lines.append(
-            f"dt = {self.dt:g} is beyond the stability limit for {beyond} of "
-            f"{self.stable_dt.size} gain pairs; dt <= {self.dt_stable_all:.3g} is stable for all"
-        )
+        if np.all(np.isinf(self.stable_dt)):
+            lines.append(
+                "no gain pair limits the step (the feedback is held over each step): a "
+                "failure confirmed at half the step is the closed loop diverging"
+            )
+        else:
+            lines.append(
+                f"dt = {self.dt:g} is beyond the stability limit for {beyond} of "
+                f"{self.stable_dt.size} gain pairs; dt <= {self.dt_stable_all:.3g} is stable "
+                "for all"
+            )
         for name, rows in self.param_summary().items():
             lines.append(f"by {name}:")
             for r in rows:
@@ -367,11 +388,20 @@ class SweepResult:
                 )
         return "\n".join(lines)
 
+    def _position_note(self) -> str:
+        if self.position_threshold is None:
+            return ""
+        return f" (against Rc) and |e_x| < {self.position_threshold:g} m"
+
     def save(self, path: str | os.PathLike) -> None:
         """Write everything to one ``.npz`` file (see `load`)."""
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         for name, value in fields.pop("params").items():
             fields[f"param__{name}"] = value
+        for name, value in fields.pop("metrics").items():
+            fields[f"metric__{name}"] = value
+        pt = fields.pop("position_threshold")
+        fields["position_threshold"] = np.nan if pt is None else pt
         gs = fields.pop("grid_shape")
         fields["grid_shape"] = np.asarray(gs if gs is not None else (-1, -1))
         np.savez(path, **{k: np.asarray(v) for k, v in fields.items()})
@@ -382,7 +412,13 @@ class SweepResult:
         with np.load(path) as z:
             d = {k: z[k] for k in z.files}
         params = {k[len("param__") :]: d.pop(k) for k in list(d) if k.startswith("param__")}
-        required = [f for f in dataclasses.fields(cls) if f.default_factory is dataclasses.MISSING]
+        metrics = {k[len("metric__") :]: d.pop(k) for k in list(d) if k.startswith("metric__")}
+        pt = float(d.pop("position_threshold", np.nan))
+        required = [
+            f
+            for f in dataclasses.fields(cls)
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+        ]
         missing = [f.name for f in required if f.name not in d]
         if missing:
             raise ValueError(
@@ -394,7 +430,13 @@ class SweepResult:
             d[name] = float(d[name])
         for name in ("n_steps", "save_every", "refine"):
             d[name] = int(d[name])
-        return cls(grid_shape=None if gs == (-1, -1) else gs, params=params, **d)
+        return cls(
+            grid_shape=None if gs == (-1, -1) else gs,
+            params=params,
+            metrics=metrics,
+            position_threshold=None if np.isnan(pt) else pt,
+            **d,
+        )
 
 
 def _nan_reduce(fn, values: np.ndarray) -> np.ndarray:
@@ -426,26 +468,80 @@ def _run_metrics(
     pv=None,
     scalarize=False,
 ):
+    if isinstance(scene, Quadrotor):
+        return _quadrotor_metrics(
+            scene, method, dt, n_steps, save_every, threshold, weights, k_R, k_O, R0, W0, scalarize
+        )
     sc = apply_params(scene, pv) if pv else scene
     sc = with_initial_state(with_gains(sc, k_R, k_O), R0, W0)
     traj = simulate(sc, method, dt, n_steps, save_every, scalarize=scalarize)
     psi = 0.5 * (3.0 - jnp.sum(traj.Rd * traj.R, axis=(-1, -2)))
+    t_settle = _settling_time(traj.t, psi < threshold)
+    return _stats(traj, psi, t_settle, tracking_cost(traj, sc, weights))
+
+
+def _settling_time(t, inside):
+    """The first saved time after which ``inside`` holds at every later point (``inf``: never)."""
+    n = inside.shape[0]
+    last_out = jnp.max(jnp.where(~inside, jnp.arange(n), -1))
+    return jnp.where(last_out < n - 1, t[jnp.minimum(last_out + 1, n - 1)], jnp.inf)
+
+
+def _stats(traj, psi, t_settle, cost) -> dict:
     ok = traj.status.code == OK
-    n = psi.shape[0]
-    # Settling: the first saved time after which Psi < threshold at every later point.
-    above = ~(psi < threshold)
-    last_above = jnp.max(jnp.where(above, jnp.arange(n), -1))
-    settled = last_above < n - 1
-    t_settle = jnp.where(settled, traj.t[jnp.minimum(last_above + 1, n - 1)], jnp.inf)
     nan = jnp.array(jnp.nan, psi.dtype)
     return {
         "final_psi": psi[-1],
         "settling_time": jnp.where(ok, t_settle, nan),
         "peak_torque": jnp.where(ok, jnp.max(jnp.sqrt(jnp.sum(traj.M**2, -1))), nan),
-        "cost": tracking_cost(traj, sc, weights),
+        "cost": cost,
         "status_code": traj.status.code,
         "fail_step": traj.status.step,
     }
+
+
+def _quadrotor_metrics(
+    scene, method, dt, n_steps, save_every, threshold, weights, k_R, k_O, R0, W0, scalarize
+):
+    """One quadrotor run: the attitude statistics against ``Rc`` plus position ones.
+
+    ``threshold = (Psi threshold, position threshold)``; the cost integrates
+    ``|e_x|^2 + w_Psi Psi(R, Rc) + w_Omega |e_Omega|^2 + w_M |M|^2``.
+    """
+    psi_thr, pos_thr = threshold
+    dtype = scene.y0.R.dtype
+    sc = eqx.tree_at(
+        lambda s: (s.gains.k_R, s.gains.k_Omega),
+        scene,
+        (jnp.asarray(k_R, dtype), jnp.asarray(k_O, dtype)),
+    )
+    y0 = _restart(sc, R0)
+    y0 = type(y0)(y0.R, y0.x.at[0:3].set(jnp.asarray(W0, dtype)))
+    sc = eqx.tree_at(lambda s: s.y0, sc, y0)
+    traj = simulate(sc, method, dt, n_steps, save_every, scalarize=scalarize)
+    ex = traj.extras
+    psi = ex["Psi"]
+    e = jnp.sqrt(jnp.sum(ex["e_x"] ** 2, -1))
+    t_settle = _settling_time(traj.t, (psi < psi_thr) & (e < pos_thr))
+    f = (
+        e**2
+        + weights.psi * psi
+        + weights.omega * jnp.sum(ex["e_Omega"] ** 2, -1)
+        + weights.effort * jnp.sum(traj.M**2, -1)
+    )
+    cost = jnp.sum(0.5 * (f[1:] + f[:-1]) * jnp.diff(traj.t))
+    out = _stats(traj, psi, t_settle, cost)
+    nan = jnp.array(jnp.nan, dtype)
+    ok = traj.status.code == OK
+    extra = {
+        "final_position_error": e[-1],
+        "max_position_error": jnp.max(e),
+        "rms_position_error": jnp.sqrt(jnp.mean(e**2)),
+        # cos(thrust axis, up) = R_33 (e3 down, thrust along -R e3): < 0 upside down.
+        "min_thrust_axis_up": jnp.min(traj.R[:, 2, 2]),
+    }
+    out.update({k: jnp.where(ok, v, nan) for k, v in extra.items()})
+    return out
 
 
 @eqx.filter_jit
@@ -617,6 +713,7 @@ def sweep(
     params: Mapping | None = None,
     param_grid: bool = True,
     threshold: float = 0.01,
+    position_threshold: float = 0.05,
     weights: CostWeights | None = None,
     refine: int = 4,
     safety: float = SAFETY,
@@ -651,6 +748,19 @@ def sweep(
 
     - `scene`: a tracking scene with the geometric controller, e.g. `scenes.seed()`;
       its reference, inertia and ``Rd0`` are kept, its gains and ``(R0, Omega0)`` replaced.
+      Or a quadrotor (`scenes.quadrotor`, e.g. `scenes.quadrotor_recovery()`): its
+      attitude gains ``k_R``, ``k_Omega`` are swept (``k_x``, ``k_v``, the vehicle,
+      reference, ``x0``, ``v0`` and control period kept) from every initial attitude,
+      upside-down ones included. Its statistics are taken against the commanded
+      attitude (``Psi(R, Rc)``); a run settles when ``Psi < threshold`` *and*
+      ``|e_x| < position_threshold``; its cost adds ``int |e_x|^2 dt`` to the
+      weighted terms (``Psi(R, Rc)``, ``e_Omega`` against ``Omega_c``, ``M``); and
+      `SweepResult.metrics` holds ``final_position_error``, ``max_position_error``,
+      ``rms_position_error`` (m) and ``min_thrust_axis_up`` (the least cosine between
+      thrust axis and up over the saved points: below 0, it flew upside down).
+      With sampled control (``control_period``) the step sets no stability limit
+      (the feedback is held over a step), so a failure re-run at half the step is
+      the closed loop diverging. ``params`` takes only ``Omega0`` for a quadrotor.
     - `k_R`, `k_Omega`: gains, shape `(a,)` and `(b,)` (``grid=True``: all
       ``a * b`` pairs) or both `(G,)` / `(G, 3)` (``grid=False``: a list of pairs).
     - `key`: a JAX PRNG key or an int seed for the initial states.
@@ -670,6 +780,7 @@ def sweep(
     - `param_grid`: cross the `params` arrays (``True``) or zip them (``False``:
       the same length, e.g. samples drawn from a distribution).
     - `threshold`: settling threshold on ``Psi = 1 - cos(angle)`` (0.01: 8.1 degrees).
+    - `position_threshold`: a quadrotor's settling threshold on ``|e_x|``, in m.
     - `weights`: `CostWeights` of the integrated cost.
     - `refine`: at most this many halvings of ``dt`` to resolve a failed run
       (0: none; a failure is then diverged if ``dt`` is known stable, unresolved
@@ -695,7 +806,9 @@ def sweep(
 
     **Returns:** a `SweepResult`.
     """
-    _check_tracking_scene(scene)
+    quad = isinstance(scene, Quadrotor)
+    if not quad:
+        _check_tracking_scene(scene)
     if method is None:
         method = RKMK4()
     if not isinstance(method, AbstractLieSolver):
@@ -713,6 +826,9 @@ def sweep(
     threshold = float(threshold)
     if not (0 < threshold <= 2):
         raise ValueError(f"threshold must be in (0, 2] (Psi = 1 - cos(angle)), got {threshold}")
+    position_threshold = float(position_threshold)
+    if not (math.isfinite(position_threshold) and position_threshold > 0):
+        raise ValueError(f"position_threshold must be > 0 (m), got {position_threshold}")
     omega0_std = float(omega0_std)
     if not (math.isfinite(omega0_std) and omega0_std >= 0):
         raise ValueError(f"omega0_std must be >= 0, got {omega0_std}")
@@ -729,17 +845,26 @@ def sweep(
     kr, ko, grid_shape = _gain_pairs(k_R, k_Omega, grid, bool(allow_negative_gains))
     G = kr.shape[0]
     arrays, dists = split_params(params)
+    if quad and (set(arrays) | set(dists)) - {"Omega0"}:
+        bad = sorted((set(arrays) | set(dists)) - {"Omega0"})
+        raise ValueError(
+            f"params {bad} vary an attitude tracking scene; a quadrotor sweep takes only "
+            "'Omega0' (vary the vehicle by building scenes with scenes.quadrotor)"
+        )
     prows = check_params(arrays, bool(param_grid))
     P = next(iter(prows.values())).shape[0] if prows else 1
     drawn = draw(dists, key, n_att)
-    scene = prepare_scene(scene, {**prows, **drawn})
+    if not quad:
+        scene = prepare_scene(scene, {**prows, **drawn})
     # Column i = p * n_att + a: combination p of the parameter arrays, from attitude a
     # (distributions are sampled per attitude a).
     col_p, col_a = np.arange(P * n_att) // n_att, np.arange(P * n_att) % n_att
     col_params = {k: v[col_p] for k, v in prows.items()}
     col_params.update({k: v[col_a] for k, v in drawn.items()})
-    J = np.asarray(scene.body.inertia, np.float64)
-    if "inertia_scale" in col_params:
+    J = np.asarray((scene.vehicle.body if quad else scene.body).inertia, np.float64)
+    if quad and scene.sampled:
+        st = np.full((G, col_p.size), np.inf)
+    elif "inertia_scale" in col_params:
         scales, which = np.unique(col_params["inertia_scale"], axis=0, return_inverse=True)
         inertias = [np.sqrt(sc)[:, None] * J * np.sqrt(sc) for sc in scales]
         st = np.stack([stable_dt(method, Ji, kr, ko, safety) for Ji in inertias], 1)
@@ -784,6 +909,7 @@ def sweep(
             "n_steps": n_steps,
             "save_every": save_every,
             "threshold": threshold,
+            "position_threshold": position_threshold if quad else None,
             "weights": [float(weights.psi), float(weights.omega), float(weights.effort)],
             "chunk": chunk,
             "refine": refine,
@@ -824,7 +950,7 @@ def sweep(
             dt / f,
             n_steps * f,
             save_every * f,
-            threshold,
+            (threshold, position_threshold) if quad else threshold,
             weights,
             *args,
             bool(scalarize),
@@ -879,6 +1005,11 @@ def sweep(
             bar.close()
 
     runs = {k: np.concatenate([p[k] for p in parts]).reshape(G, n_att) for k in RUN_FIELDS}
+    metrics = {
+        k: np.concatenate([p[k] for p in parts]).reshape(G, n_att)
+        for k in parts[0]
+        if k not in RUN_FIELDS
+    }
     return SweepResult(
         k_R=kr,
         k_Omega=ko,
@@ -892,6 +1023,8 @@ def sweep(
         save_every=save_every,
         refine=refine,
         params=col_params,
+        metrics=metrics,
+        position_threshold=position_threshold if quad else None,
         **runs,
     )
 
@@ -967,8 +1100,9 @@ def _resolve(out: dict, rows, stable, dt, refine: int, chunk: int, n_dev: int, r
         res = run(rows[sel], level, _bucket(sel.size, chunk, n_dev))
         res = {k: v[: sel.size] for k, v in res.items()}
         ok = res["status_code"] == OK
-        for k in STAT_FIELDS:
-            out[k][sel[ok]] = res[k][ok]
+        for k in out:
+            if k not in ("status_code", "fail_step"):
+                out[k][sel[ok]] = res[k][ok]
         outcome[sel[ok]], run_dt[sel[ok]] = NUMERICAL, dt_level
         div = ~ok & (dt_level <= stable[sel])
         outcome[sel[div]], run_dt[sel[div]] = DIVERGED, dt_level
@@ -1005,7 +1139,7 @@ def _load_chunk(file, n: int, path: Path) -> dict:
                 f"{path} was written by an older so3jax (no {', '.join(missing)}); "
                 "use another results_dir, or delete its chunk files to recompute them"
             )
-        out = {k: z[k] for k in RUN_FIELDS}
+        out = {k: z[k] for k in z.files}
     if any(v.shape[0] != n for v in out.values()):
         raise ValueError(f"{path} has the wrong number of runs; delete it to recompute it")
     return out

@@ -342,3 +342,67 @@ def test_sweep_quadrotor_gains_by_attitudes_with_upside_down_starts():
     tr = s.simulate(sc1, s.RKMK4(), 0.01, 300, save_every=3)
     e = np.linalg.norm(np.asarray(tr.extras["e_x"]), axis=-1)
     np.testing.assert_allclose(out["max_position_error"][1, 2], e.max(), rtol=1e-12)
+
+
+def test_sweep_takes_quadrotor_scenes(tmp_path):
+    """`sweep` over a quadrotor: per-run statistics equal direct runs; failures re-run."""
+    from so3jax._quadrotor import quadrotor_recovery
+
+    # Sampled control: upside-down starts recover; no step limit from the feedback.
+    sc = quadrotor_recovery(control_period=0.01)
+    r = s.sweep(sc, [8.81], [2.54], n_attitudes=3, key=2, dt=0.01, n_steps=300, save_every=3,
+                position_threshold=1.0, progress=False)  # fmt: skip
+    # No step limit from held feedback: a failure is the sampled closed loop diverging
+    # (attitude 1 passes the singularity of Rc, Omega_c about 500 rad/s, where a 100 Hz
+    # controller loses it); the others are finite, one of them from upside down.
+    assert np.all(np.isinf(r.stable_dt)) and list(r.outcome[0]) == [0, 2, 0]
+    assert r.R0[2, 2, 2] < 0 and np.isnan(r.metrics["max_position_error"][0, 1])
+    assert set(r.metrics) == {
+        "final_position_error", "max_position_error", "rms_position_error", "min_thrust_axis_up"
+    }  # fmt: skip
+    i = 2
+    assert r.metrics["min_thrust_axis_up"][0, i] < 0
+    assert r.settled[0, i] and r.final_psi[0, i] < r.threshold
+    g = eqx.tree_at(lambda q: (q.k_R, q.k_Omega), sc.gains, (jnp.asarray(8.81), jnp.asarray(2.54)))
+    one = quadrotor(M_, DIFFTUNE_INERTIA, g, sc.reference, R0=r.R0[i], control_period=0.01)
+    tr = s.simulate(one, s.RKMK4(), 0.01, 300, save_every=3)
+    e = np.linalg.norm(np.asarray(tr.extras["e_x"]), axis=-1)
+    np.testing.assert_allclose(r.metrics["max_position_error"][0, i], e.max(), rtol=1e-12)
+    np.testing.assert_allclose(r.peak_torque[0, i], np.linalg.norm(tr.M, axis=-1).max(), 1e-12)
+    w = s.CostWeights()
+    f = (e**2 + float(w.psi) * np.asarray(tr.extras["Psi"])
+         + float(w.omega) * np.sum(np.asarray(tr.extras["e_Omega"]) ** 2, -1)
+         + float(w.effort) * np.sum(np.asarray(tr.M) ** 2, -1))  # fmt: skip
+    np.testing.assert_allclose(r.cost[0, i], np.trapezoid(f, np.asarray(tr.t)), rtol=1e-12)
+    inside = (np.asarray(tr.extras["Psi"]) < r.threshold) & (e < r.position_threshold)
+    first = np.flatnonzero(~inside)[-1] + 1
+    assert r.settling_time[0, i] == pytest.approx(float(tr.t[first]), abs=1e-12)
+    # the metrics survive save and load
+    path = str(tmp_path / "q.npz")
+    r.save(path)
+    back = s.SweepResult.load(path)
+    assert back.position_threshold == r.position_threshold
+    key = "rms_position_error"
+    np.testing.assert_array_equal(back.metrics[key], r.metrics[key])
+
+    # Continuous control past RKMK4's step limit (k_Omega = 60): resolved at a smaller step,
+    # with every statistic (the position ones too) from that run.
+    cont = quadrotor_recovery(control_period=None)
+    with pytest.warns(UserWarning, match="beyond the stability limit"):
+        r = s.sweep(cont, [8.81, 8.81], [2.54, 60.0], grid=False, n_attitudes=1, dt=0.01,
+                    n_steps=60, save_every=2, scalarize=False, progress=False)  # fmt: skip
+    assert r.outcome[0, 0] == 0 and r.outcome[1, 0] == 1  # finite; numerical
+    f = round(0.01 / r.run_dt[1, 0])
+    g = eqx.tree_at(
+        lambda q: (q.k_R, q.k_Omega), cont.gains, (jnp.asarray(8.81), jnp.asarray(60.0))
+    )
+    one = quadrotor(M_, DIFFTUNE_INERTIA, g, cont.reference, R0=r.R0[0])
+    tr = s.simulate(one, s.RKMK4(), 0.01 / f, 60 * f, save_every=2 * f)
+    e = np.linalg.norm(np.asarray(tr.extras["e_x"]), axis=-1)
+    np.testing.assert_allclose(r.metrics["final_position_error"][1, 0], e[-1], rtol=1e-10)
+    np.testing.assert_allclose(r.final_psi[1, 0], tr.extras["Psi"][-1], rtol=1e-8, atol=1e-14)
+
+    with pytest.raises(ValueError, match="Omega0"):
+        s.sweep(sc, [1.0], [1.0], params={"inertia_scale": [1.0, 2.0]}, progress=False)
+    with pytest.raises(ValueError, match="position_threshold"):
+        s.sweep(sc, [1.0], [1.0], position_threshold=0.0, progress=False)
