@@ -27,7 +27,9 @@ def sweep_heatmaps(result):
     diverged, ``o`` runs that failed only numerically (resolved at a smaller
     step), ``?`` unresolved runs. Right: the largest step known to be stable for
     each cell (`so3jax.stable_dt`), with the cells past the sweep's ``dt``
-    outlined: there the runs were re-run at smaller steps.
+    outlined: there the runs were re-run at smaller steps. A quadrotor sweep
+    with sampled control has no step limit: its right panel is the median
+    final position error instead.
 
     **Arguments:**
 
@@ -49,10 +51,15 @@ def sweep_heatmaps(result):
     lo = float(np.min(stable[finite])) if finite.any() else result.dt / 2
     hi = float(np.max(stable[finite])) if finite.any() else result.dt * 2
     lo, hi = min(lo, result.dt) * 0.9, max(hi, result.dt) * 1.1
+    right = (stable, "largest stable dt (s), linearised", "cividis", dict(norm=LogNorm(lo, hi)))
+    if not finite.any() and "final_position_error" in result.metrics:
+        err = result._masked(result.metrics["final_position_error"])
+        err = result.as_grid(_nan_median(err))
+        right = (err, "median final |e_x| (m)", "cividis", {})
     panels = (
         (med_shown, "median settling time (s)", "viridis", dict(vmin=0.0, vmax=horizon)),
         (fail, "fraction not settled (any reason)", "magma", dict(vmin=0.0, vmax=1.0)),
-        (stable, "largest stable dt (s), linearised", "cividis", dict(norm=LogNorm(lo, hi))),
+        right,
     )
     for ax, (val, title, cmap, scale) in zip(axes, panels, strict=True):
         cm = plt.get_cmap(cmap).with_extremes(bad="0.75")
@@ -101,13 +108,29 @@ def sweep_heatmaps(result):
     axes[1].legend(loc="upper left", fontsize=7)
     n = result.R0.shape[0]
     c = result.outcome_counts()
+    settle = f"Psi < {result.threshold:g}"
+    if result.position_threshold is not None:
+        settle += f" and |e_x| < {result.position_threshold:g} m"
+    limit = (
+        f"dt <= {result.dt_stable_all:.3g} is stable for every cell"
+        if finite.any()
+        else "no step limit (feedback held over each step)"
+    )
     fig.suptitle(
-        f"{n} random attitudes per cell, horizon {horizon:g} s, Psi < {result.threshold:g}, "
+        f"{n} random attitudes per cell, horizon {horizon:g} s, {settle}, "
         f"dt = {result.dt:g}: {c['numerical']} runs numerical, {c['diverged']} diverged, "
-        f"{c['unresolved']} unresolved; dt <= {result.dt_stable_all:.3g} is stable for every cell",
+        f"{c['unresolved']} unresolved; {limit}",
         fontsize=10,
     )
     return fig
+
+
+def _nan_median(values: np.ndarray) -> np.ndarray:
+    """Median over axis 1, NaN (quietly) for rows with no finite value."""
+    out = np.full(values.shape[0], np.nan)
+    rows = ~np.all(np.isnan(values), axis=1)
+    out[rows] = np.nanmedian(values[rows], axis=1)
+    return out
 
 
 def _is_geometric(x) -> bool:

@@ -377,6 +377,10 @@ def test_sweep_takes_quadrotor_scenes(tmp_path):
     inside = (np.asarray(tr.extras["Psi"]) < r.threshold) & (e < r.position_threshold)
     first = np.flatnonzero(~inside)[-1] + 1
     assert r.settling_time[0, i] == pytest.approx(float(tr.t[first]), abs=1e-12)
+    from so3jax._plot_sweep import sweep_heatmaps
+
+    fig = sweep_heatmaps(r)  # no step limit: the right panel shows the position error
+    assert fig.axes[2].get_title() == "median final |e_x| (m)"
     # the metrics survive save and load
     path = str(tmp_path / "q.npz")
     r.save(path)
