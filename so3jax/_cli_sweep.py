@@ -21,6 +21,10 @@ import sys
 import time
 from pathlib import Path
 
+#: Scenes `sweep` runs from the command line.
+#: (A sweep replaces the initial attitude: quadrotor-recovery is hover at the origin.)
+SWEEP_SCENES = ("seed", "quadrotor-recovery", "quadrotor-circle")
+
 
 class _Parser(argparse.ArgumentParser):
     """An argument parser whose errors are one line on stderr (exit status 2)."""
@@ -85,10 +89,18 @@ def sweep_parser() -> argparse.ArgumentParser:
     p = _Parser(
         prog="python -m so3jax sweep",
         description=(
-            "Monte Carlo sweep of the geometric controller on the seed scenario: a log grid of "
-            "(k_R, k_Omega) crossed with random initial attitudes. Writes results.npz, "
-            "summary.json and PNG figures to --out; rerun with the same options to resume."
+            "Monte Carlo sweep of the geometric controller on the seed scenario (or a "
+            "quadrotor, --scene): a log grid of (k_R, k_Omega) crossed with random initial "
+            "attitudes. Writes results.npz, summary.json and PNG figures to --out; rerun with "
+            "the same options to resume."
         ),
+    )
+    p.add_argument(
+        "--scene",
+        choices=SWEEP_SCENES,
+        default="seed",
+        help="the seed's attitude tracking, or a quadrotor on SE(3) whose attitude gains are "
+        "swept (its control held over --dt; k_x, k_v as published) (default: %(default)s)",
     )
     p.add_argument("--n-kR", type=int, default=16, help="grid points in k_R")
     p.add_argument("--n-kOmega", type=int, default=16, help="grid points in k_Omega")
@@ -133,6 +145,12 @@ def sweep_parser() -> argparse.ArgumentParser:
         help="factors on the reference rate to sweep",
     )
     p.add_argument("--threshold", type=_positive(float), default=0.01, help="settling Psi")
+    p.add_argument(
+        "--position-threshold",
+        type=_positive(float),
+        default=0.05,
+        help="a quadrotor's settling threshold on |e_x| in m (default: %(default)s)",
+    )
     p.add_argument("--save-every", type=int, default=1)
     p.add_argument("--chunk-size", type=int, default=2048, help="runs per chunk")
     p.add_argument(
@@ -222,6 +240,11 @@ def sweep_main(argv=None) -> int:
         "reference_amplitude": args.reference_amplitude,
     }
     params = {k: v for k, v in params.items() if v}
+    if args.scene != "seed" and set(params) - {"Omega0"}:
+        parser.error(
+            f"--scene {args.scene} sweeps the gains and --omega0 only; --inertia-scale, "
+            "--disturbance and --reference-amplitude vary the seed scenario"
+        )
     if args.threshold > 2:
         parser.error(f"--threshold must be in (0, 2], got {args.threshold}")
     n_steps = _n_steps(args, parser)
@@ -248,7 +271,14 @@ def sweep_main(argv=None) -> int:
     if first:
         out.mkdir(parents=True, exist_ok=True)
     with jax.enable_x64(args.dtype == "float64"):
-        scene = scenes.seed(dtype=args.dtype)
+        if args.scene == "seed":
+            scene = scenes.seed(dtype=args.dtype)
+        else:
+            make = {
+                "quadrotor-recovery": scenes.quadrotor_recovery,
+                "quadrotor-circle": scenes.quadrotor_circle,
+            }[args.scene]
+            scene = make(control_period=args.dt, dtype=args.dtype)
         k_R = np.geomspace(*args.kR_range, args.n_kR)
         k_O = np.geomspace(*args.kOmega_range, args.n_kOmega)
         t = time.perf_counter()
@@ -265,6 +295,7 @@ def sweep_main(argv=None) -> int:
             omega0_std=args.omega0_std,
             params=params,
             threshold=args.threshold,
+            position_threshold=args.position_threshold,
             weights=CostWeights(args.w_psi, args.w_omega, args.w_effort),
             refine=args.refine,
             chunk_size=args.chunk_size,
@@ -277,6 +308,7 @@ def sweep_main(argv=None) -> int:
     result.save(out / "results.npz")
     summary = result.summary()
     summary.update(
+        scene=args.scene,
         seconds=seconds,
         runs_per_second=summary["n_runs"] / seconds,
         dtype=args.dtype,

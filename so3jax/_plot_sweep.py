@@ -84,8 +84,8 @@ def sweep_heatmaps(result):
                 KR[cells],
                 marker=marker,
                 s=28,
-                facecolors="none" if marker == "o" else color,
-                edgecolors=color,
+                # "x" and "?" are unfilled markers: they take one colour, no edge.
+                **(dict(facecolors="none", edgecolors=color) if marker == "o" else dict(c=color)),
                 linewidths=1.2,
                 label=label,
             )

@@ -251,6 +251,18 @@ def test_command_line(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["n_runs"] == 8
     assert Path(out / "chunks" / "chunk_00000.npz").exists()
+    # A quadrotor: its attitude gains swept, position statistics kept.
+    with pytest.raises(SystemExit) as e:
+        sweep_main(["--scene", "quadrotor-circle", "--inertia-scale", "2"])
+    assert e.value.code == 2 and "--omega0 only" in capsys.readouterr().err
+    q = tmp_path / "quad"
+    argv = ["--scene", "quadrotor-recovery", "--n-kR", "1", "--n-kOmega", "1"]
+    argv += ["--n-attitudes", "2", "--duration", "0.1", "--position-threshold", "0.2"]
+    assert sweep_main([*argv, "--out", str(q), "--quiet"]) == 0
+    assert "|e_x| < 0.2 m" in capsys.readouterr().out
+    res = s.SweepResult.load(q / "results.npz")
+    assert res.position_threshold == 0.2 and res.metrics["max_position_error"].shape == (1, 2)
+    assert json.loads((q / "summary.json").read_text())["scene"] == "quadrotor-recovery"
 
 
 def test_scalarized_sweep_equals_array_program(scene, base):
