@@ -758,9 +758,9 @@ def sweep(
       `SweepResult.metrics` holds ``final_position_error``, ``max_position_error``,
       ``rms_position_error`` (m) and ``min_thrust_axis_up`` (the least cosine between
       thrust axis and up over the saved points: below 0, it flew upside down).
-      With sampled control (``control_period``) the step sets no stability limit
-      (the feedback is held over a step), so a failure re-run at half the step is
-      the closed loop diverging. ``params`` takes only ``Omega0`` for a quadrotor.
+      With sampled control (``control_period``) the feedback sets no step limit
+      (it is held over a step): a failed run is re-run at half the step, numerical
+      if finite there (a fast spin the step did not resolve), diverged if not. ``params`` takes only ``Omega0`` for a quadrotor.
     - `k_R`, `k_Omega`: gains, shape `(a,)` and `(b,)` (``grid=True``: all
       ``a * b`` pairs) or both `(G,)` / `(G, 3)` (``grid=False``: a list of pairs).
     - `key`: a JAX PRNG key or an int seed for the initial states.

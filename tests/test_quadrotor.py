@@ -352,7 +352,8 @@ def test_sweep_takes_quadrotor_scenes(tmp_path):
     sc = quadrotor_recovery(control_period=0.01)
     r = s.sweep(sc, [8.81], [2.54], n_attitudes=3, key=2, dt=0.01, n_steps=300, save_every=3,
                 position_threshold=1.0, progress=False)  # fmt: skip
-    # No step limit from held feedback: a failure is the sampled closed loop diverging
+    # No step limit from held feedback: a failure confirmed at half the step is the sampled
+    # closed loop diverging
     # (attitude 1 passes the singularity of Rc, Omega_c about 500 rad/s, where a 100 Hz
     # controller loses it); the others are finite, one of them from upside down.
     assert np.all(np.isinf(r.stable_dt)) and list(r.outcome[0]) == [0, 2, 0]
