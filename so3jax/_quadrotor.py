@@ -515,6 +515,22 @@ class Quadrotor(Scene):
     def sampled(self) -> bool:
         return self.control_period is not None
 
+    def steps_per_hold(self, dt) -> int:
+        """``control_period / dt``; ``ValueError`` unless ``dt`` divides the period.
+
+        Call it eagerly where ``dt`` and the period are known (`simulate` does
+        through `for_step`; a traced period inside ``jit`` cannot be checked).
+        """
+        T = float(np.asarray(self.control_period, np.float64))
+        ratio = T / float(np.asarray(dt, np.float64))
+        n = round(ratio)
+        if n < 1 or abs(ratio - n) > 1e-6 * max(1.0, ratio):
+            raise ValueError(
+                f"dt ({float(dt):g}) must divide control_period ({T:g}) into a whole "
+                f"number of steps; got control_period / dt = {ratio:.6g}"
+            )
+        return n
+
     def control(self, t, y) -> QuadrotorControl:
         """The controller at ``(t, y)`` (continuous-time formulas)."""
         R = y.R[..., 0, :, :]
@@ -552,14 +568,7 @@ class Quadrotor(Scene):
             return self
         T = self.control_period
         if _is_concrete(dt) and _is_concrete(T):
-            ratio = float(np.asarray(T, np.float64)) / float(np.asarray(dt, np.float64))
-            n = round(ratio)
-            if n < 1 or abs(ratio - n) > 1e-6 * max(1.0, ratio):
-                raise ValueError(
-                    f"dt ({float(dt):g}) must divide control_period ({float(T):g}) into a whole "
-                    f"number of steps; got control_period / dt = {ratio:.6g}"
-                )
-            n = jnp.asarray(n, T.dtype)
+            n = jnp.asarray(self.steps_per_hold(dt), T.dtype)
         else:
             n = jnp.maximum(jnp.round(T / dt), 1.0).astype(T.dtype)
         scene = eqx.tree_at(lambda s: s.steps_per_sample, self, n, is_leaf=lambda a: a is None)
@@ -849,6 +858,8 @@ def sweep_quadrotor(
     N = R0.shape[0]
     gains = _cast_floats(gains, dtype)
     method = RKMK4() if method is None else method
+    if scene.sampled:  # inside the jitted batch the period is traced: check it here
+        scene.steps_per_hold(dt)
 
     def one(g, R):
         sc = eqx.tree_at(lambda s: (s.gains, s.y0), scene, (g, _restart(scene, R)))

@@ -760,7 +760,8 @@ def sweep(
       thrust axis and up over the saved points: below 0, it flew upside down).
       With sampled control (``control_period``) the feedback sets no step limit
       (it is held over a step): a failed run is re-run at half the step, numerical
-      if finite there (a fast spin the step did not resolve), diverged if not. ``params`` takes only ``Omega0`` for a quadrotor.
+      if finite there (a fast spin the step did not resolve), diverged if not.
+      ``params`` takes only ``Omega0`` for a quadrotor.
     - `k_R`, `k_Omega`: gains, shape `(a,)` and `(b,)` (``grid=True``: all
       ``a * b`` pairs) or both `(G,)` / `(G, 3)` (``grid=False``: a list of pairs).
     - `key`: a JAX PRNG key or an int seed for the initial states.
@@ -823,6 +824,8 @@ def sweep(
     dt = float(dt)
     if not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be positive and finite, got {dt}")
+    if quad and scene.sampled:  # inside the jitted chunks the period is traced
+        scene.steps_per_hold(dt)
     threshold = float(threshold)
     if not (0 < threshold <= 2):
         raise ValueError(f"threshold must be in (0, 2] (Psi = 1 - cos(angle)), got {threshold}")

@@ -682,6 +682,9 @@ def _tune_general(
             f"({jax.tree.structure(current)}), got {jax.tree.structure(params)}"
         )
     params = jax.tree.map(lambda p: jnp.asarray(p, dtype), params)
+    # Checks that need concrete values (a quadrotor's dt against its control period),
+    # here: inside the jitted tuning step the scene's arrays are traced.
+    scene.for_step(_check_dt(dt, dtype), jnp.zeros((), dtype))
     if bounds is None:
         project = None
     else:

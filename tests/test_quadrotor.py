@@ -287,6 +287,16 @@ def test_bad_input():
     sc = quadrotor(1.0, DIFFTUNE_INERTIA, g, ref, control_period=0.01)
     with pytest.raises(ValueError, match=r"dt \(0.003\) must divide control_period"):
         s.simulate(sc, s.RKMK4(), 0.003, 10)
+    # The batched and jitted entry points check it eagerly (inside jit the period is traced).
+    cost = lambda tr: jnp.sum(tr.extras["e_x"] ** 2)  # noqa: E731
+    batch = jax.vmap(QuadrotorGains)(*[jnp.ones((1, 3))] * 4)
+    for call in (
+        lambda: s.tune(sc, cost=cost, dt=0.003, n_steps=10, n_iter=1),
+        lambda: s.sweep(sc, [1.0], [1.0], dt=0.003, n_steps=10, progress=False),
+        lambda: s.sweep_quadrotor(sc, batch, jnp.eye(3)[None], dt=0.003, n_steps=10),
+    ):
+        with pytest.raises(ValueError, match=r"dt \(0.003\) must divide control_period"):
+            call()
     with pytest.raises(ValueError, match="fixed steps"):
         s.simulate(sc, s.RKMK45(), t1=1.0, rtol=1e-6, atol=1e-6)
     assert eqx.tree_equal(sc.for_step(0.0025, 0.0).steps_per_sample, jnp.asarray(4.0))
