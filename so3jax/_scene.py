@@ -9,6 +9,7 @@ reference attitude ``Rd`` with ``Rd' = Rd hat(Omega_d(t))``) that ride along.
 from __future__ import annotations
 
 import abc
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -21,9 +22,18 @@ from ._types import Array
 
 
 class Scene(eqx.Module):
-    """Abstract scene: an initial state and a vector field on ``SO(3)^k x R^n``."""
+    """Abstract scene: an initial state and a vector field on ``SO(3)^k x R^n``.
+
+    A scene whose rotation groups ``y.R[g]`` move with time alone (not with
+    the rest of the state: a reference attitude ``Rd' = Rd hat(Omega_d(t))``)
+    lists them in the class attribute `time_driven_groups`. After a failure
+    they run on instead of freezing with the rest of the state (they cannot
+    have caused it), so a batch whose runs share their start computes them
+    once for all runs.
+    """
 
     y0: eqx.AbstractVar[LieState]
+    time_driven_groups: ClassVar[tuple[int, ...]] = ()
 
     @abc.abstractmethod
     def vector_field(self, t: Array, y: LieState) -> LieTangent:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -99,6 +100,7 @@ class Tracking(MechanicalScene):
     controller: AbstractController
     reference: Callable
     y0: LieState
+    time_driven_groups: ClassVar[tuple[int, ...]] = (1,)  # Rd
 
     def _reference(self, t, dtype):
         Omega_d, dOmega_d = self.reference(t)

@@ -134,7 +134,8 @@ def guarded_step(scene, method, dt, t0, compensated: bool = False):
 
     The carry is ``(y, k, code, bad)``: state, step index, `Status` code and the
     index of the failed step. A step that is not finite (or whose implicit solve
-    failed) sets the code once and leaves ``y`` at its last good value.
+    failed) sets the code once and leaves ``y`` at its last good value, except
+    the scene's `time_driven_groups` (a reference attitude), which run on.
 
     With ``compensated`` the carry has a fifth entry, the Kahan compensation
     ``c`` of the rotations: ``R <- R + dR`` is summed as ``z = dR - c``,
@@ -160,10 +161,26 @@ def guarded_step(scene, method, dt, t0, compensated: bool = False):
         code = jnp.where(newly, jnp.where(finite, SOLVER_FAILED, NONFINITE), code)
         bad = jnp.where(newly, k, bad)
         keep = code == OK
-        y = jax.tree.map(lambda new, old: jnp.where(keep, new, old), y1, y)
+        y = LieState(freeze(keep, y1.R, y.R), jnp.where(keep, y1.x, y.x))
         if compensated:
-            comp = [jnp.where(keep, c1, c)]
+            comp = [freeze(keep, c1, c)]
         return (y, k + 1, code, bad, *comp), None
+
+    shared = tuple(scene.time_driven_groups)
+
+    def freeze(keep, new, old):
+        """``new`` while the run is good, ``old`` after; time-driven groups always ``new``.
+
+        Selecting those on ``keep`` would make them differ between the runs of a
+        batch; left alone, runs that share a start share them (one computation
+        in the scalarized batch program).
+        """
+        if not shared:
+            return jnp.where(keep, new, old)
+        groups = [
+            new[g] if g in shared else jnp.where(keep, new[g], old[g]) for g in range(new.shape[0])
+        ]
+        return jnp.stack(groups)
 
     return one_step
 
@@ -192,6 +209,49 @@ def split_scene(scene, method, dt, t0):
 
 
 @eqx.filter_jit
+def simulate_from(scene, R0, method, dt, n_steps: int, save_every: int = 1, scalarize=None):
+    """`simulate` (fixed steps, ``t0 = 0``) with the body's start ``R0`` given apart.
+
+    For batches of starts (`sweep`): the scene's own attitude array, with its
+    reference ``Rd0``, stays unbatched, and so does ``Rd`` (see `split_groups`).
+    """
+    dtype = scene.y0.R.dtype
+    dt = _check_dt(dt, dtype)
+    t0 = jnp.zeros((), dtype)
+    scene = scene.for_step(dt, t0)
+    n = n_steps // save_every
+    return _simulate(scene, method, dt, t0, n, save_every, _program(scalarize), False, R0)
+
+
+def split_groups(y: LieState, R0=None) -> tuple:
+    """``(groups, x)``: the state with each rotation group its own array.
+
+    The engine batches and scalarizes per array: with the groups apart, a
+    batch whose runs share a time-driven group (a reference attitude) keeps
+    that group unbatched. ``R0`` replaces group 0 (a batched start next to
+    shared groups: stacking it into ``y.R`` first would batch them all).
+    """
+    groups = [y.R[g] for g in range(y.R.shape[0])]
+    if R0 is not None:
+        groups[0] = jnp.asarray(R0, y.R.dtype)
+    return tuple(groups), y.x
+
+
+def join_groups(groups, x) -> LieState:
+    return LieState(jnp.stack(groups), x)
+
+
+def engine_step(guarded):
+    """A `guarded_step` body over carries whose state is split into groups."""
+
+    def step(carry):
+        (groups, x), *rest = carry
+        (y1, *rest1), _ = guarded((join_groups(groups, x), *rest), None)
+        return (split_groups(y1), *rest1)
+
+    return step
+
+
 def _simulate(
     scene,
     method,
@@ -201,28 +261,33 @@ def _simulate(
     save_every: int,
     program: str = "auto",
     compensated: bool = False,
+    R0=None,
 ) -> Trajectory:
     y0 = scene.y0
     params, unpack = split_scene(scene, method, dt, t0)
 
     def step(P, carry):
         sc, m, dt, t0 = unpack(P)
-        return guarded_step(sc, m, dt, t0, compensated)(carry, None)[0]
+        return engine_step(guarded_step(sc, m, dt, t0, compensated))(carry)
 
     def observe(P, carry):
         sc, _, dt, t0 = unpack(P)
-        y, k, code = carry[:3]
+        (groups, x), k, code = carry[:3]
         t = t0 + k * dt
-        obs = sc.observe(t, y)
+        obs = sc.observe(t, join_groups(groups, x))
         obs = jax.tree.map(lambda a: jnp.where(code == OK, a, jnp.nan), obs)
         return t, obs
 
-    init = (y0, jnp.array(0, jnp.int32), jnp.array(OK, jnp.int32), jnp.array(-1, jnp.int32))
+    start = split_groups(y0, R0)
+    y0 = join_groups(*start)
+    i32 = jnp.int32
+    init = (start, jnp.array(0, i32), jnp.array(OK, i32), jnp.array(-1, i32))
     if compensated:
         init = init + (jnp.zeros_like(y0.R),)
-    (ts, obs), (y, _, code, bad, *_) = run(
+    (ts, obs), ((groups, x), _, code, bad, *_) = run(
         step, observe, params, init, n_save * save_every, save_every, program=program
     )
+    y = join_groups(groups, x)
     obs0 = scene.observe(t0, y0)
     t = jnp.concatenate([t0[None], ts])
     obs = jax.tree.map(lambda a0, a: jnp.concatenate([a0[None], a]), obs0, obs)

@@ -59,7 +59,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._integrators import RKMK4, AbstractLieSolver
 from ._quadrotor import Quadrotor, _restart
-from ._simulate import simulate
+from ._simulate import simulate, simulate_from
 from ._so3 import random_rotation
 from ._stability import SAFETY, stable_dt
 from ._sweep_params import apply_params, check_params, draw, prepare_scene, split_params
@@ -70,7 +70,7 @@ from ._tune import (
     _check_weights,
     tracking_cost,
     with_gains,
-    with_initial_state,
+    with_start,
 )
 from ._types import Array
 
@@ -473,8 +473,9 @@ def _run_metrics(
             scene, method, dt, n_steps, save_every, threshold, weights, k_R, k_O, R0, W0, scalarize
         )
     sc = apply_params(scene, pv) if pv else scene
-    sc = with_initial_state(with_gains(sc, k_R, k_O), R0, W0)
-    traj = simulate(sc, method, dt, n_steps, save_every, scalarize=scalarize)
+    # The start goes in apart from the scene's attitudes, so the runs share Rd.
+    sc, R0 = with_start(with_gains(sc, k_R, k_O), R0, W0)
+    traj = simulate_from(sc, R0, method, dt, n_steps, save_every, scalarize)
     psi = 0.5 * (3.0 - jnp.sum(traj.Rd * traj.R, axis=(-1, -2)))
     t_settle = _settling_time(traj.t, psi < threshold)
     return _stats(traj, psi, t_settle, tracking_cost(traj, sc, weights))

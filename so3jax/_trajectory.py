@@ -36,8 +36,10 @@ class Status(eqx.Module):
     - `step`: index of the step that failed (the state at time
       ``t0 + step * dt`` was the last good one), or -1.
 
-    After a failure the state is frozen at the last good value and the saved
-    points past it are NaN, so a diverging run never poisons a batch.
+    After a failure the state is frozen at the last good value (a scene's
+    time-driven rotations, such as the reference attitude ``Rd`` of a tracking
+    scene, run on to the end) and the saved points past it are NaN, so a
+    diverging run never poisons a batch.
     """
 
     code: Int[Array, "*batch"]

@@ -28,7 +28,7 @@ from ._control import GeometricController, GeometricGains
 from ._engine import run
 from ._integrators import RKMK4, AbstractLieSolver
 from ._scene import Scene
-from ._simulate import guarded_step, split_scene
+from ._simulate import engine_step, guarded_step, join_groups, split_groups, split_scene
 from ._so3 import _as_float, _is_concrete, _mtv, _mv
 from ._state import LieState
 from ._trajectory import OK, Trajectory, _check_dt, _check_int
@@ -70,6 +70,17 @@ def with_initial_state(scene, R0: Array, Omega0: Array):
     memory = scene.controller.init_memory(R0, Rd0).astype(dtype)
     x = jnp.concatenate([jnp.asarray(Omega0, dtype), memory])
     return eqx.tree_at(lambda s: s.y0, scene, LieState(jnp.stack([R0, Rd0]), x))
+
+
+def with_start(scene, R0: Array, Omega0: Array):
+    """``(scene, R0)``: the scene's rates and controller memory set for a start at
+    ``(R0, Omega0)``, its attitude array left alone; run it with ``R0`` apart
+    (`split_groups`), so a batch of starts shares the reference ``Rd``."""
+    dtype = scene.y0.R.dtype
+    R0 = jnp.asarray(R0, dtype)
+    memory = scene.controller.init_memory(R0, scene.y0.R[1]).astype(dtype)
+    x = jnp.concatenate([jnp.asarray(Omega0, dtype), memory])
+    return eqx.tree_at(lambda s: s.y0.x, scene, x), R0
 
 
 def _gain_array(value, name: str, dtype) -> Array:
@@ -241,6 +252,13 @@ def rollout_cost(
     References: A. Griewank, A. Walther, "Evaluating Derivatives", SIAM 2008,
     ch. 12 (checkpointing).
     """
+    args = _rollout_args(scene, method, dt, n_steps, weights, save_every, checkpoint_every, t0)
+    return _rollout(scene.for_step(args[1], args[2]), *args, program)
+
+
+def _rollout_args(scene, method, dt, n_steps, weights, save_every, checkpoint_every, t0):
+    """Checked arguments of `_rollout` after the scene: ``(method, dt, t0, weights,
+    n_save, save_every, block)``."""
     if not isinstance(scene, Scene) or not callable(getattr(scene, "reference", None)):
         raise ValueError(f"scene must be a tracking scene, got {type(scene).__name__}")
     if not isinstance(method, AbstractLieSolver):
@@ -255,31 +273,35 @@ def rollout_cost(
     dtype = scene.y0.R.dtype
     dt = _check_dt(dt, dtype)
     t0 = jnp.asarray(t0, dtype)
-    scene = scene.for_step(dt, t0)
     n_save = n_steps // save_every
     block = _block_size(checkpoint_every, n_save, save_every)
-    return _rollout(scene, method, dt, t0, weights, n_save, save_every, block, program)
+    return method, dt, t0, weights, n_save, save_every, block
 
 
 @eqx.filter_jit
-def _rollout(scene, method, dt, t0, weights, n_save: int, save_every: int, block, program="auto"):
+def _rollout(
+    scene, method, dt, t0, weights, n_save: int, save_every: int, block, program="auto", R0=None
+):
     # The step logic is that of `simulate` (freeze on failure), so the costs agree;
     # the engine runs it (array / scalarized / discrete adjoint, see `so3jax._engine`).
+    # ``R0`` replaces the body's start (see `split_groups`).
     params, unpack = split_scene(scene, method, dt, t0)
     n_steps = n_save * save_every
 
     def step(P, state):
         sc, m, dt, t0 = unpack(P[0])
-        return guarded_step(sc, m, dt, t0)(state, None)[0]
+        return engine_step(guarded_step(sc, m, dt, t0))(state)
 
     def observe(P, state):  # the integrand at every save_every-th step
         sc, _, dt, t0 = unpack(P[0])
-        y, k, code, _ = state
+        (groups, x), k, code, _ = state
+        y = join_groups(groups, x)
         return jnp.where(code == OK, _point_cost(sc, P[1], t0 + k * dt, y), jnp.nan)
 
-    y0 = scene.y0
+    start = split_groups(scene.y0, R0)
+    y0 = join_groups(*start)
     i32 = jnp.int32
-    state = (y0, jnp.array(0, i32), jnp.array(OK, i32), jnp.array(-1, i32))
+    state = (start, jnp.array(0, i32), jnp.array(OK, i32), jnp.array(-1, i32))
     checkpoint = n_steps if block is None else block * save_every
     fs, _ = run(
         step,
@@ -383,18 +405,12 @@ def expected_cost(
     **Returns:** the mean cost, shape `()`.
     """
 
+    args = _rollout_args(scene, method, dt, n_steps, weights, save_every, checkpoint_every, 0.0)
+
     def one(R, W):
-        sc = with_initial_state(with_gains(scene, k_R, k_Omega), R, W)
-        return rollout_cost(
-            sc,
-            method,
-            dt,
-            n_steps,
-            weights,
-            save_every=save_every,
-            checkpoint_every=checkpoint_every,
-            program=program,
-        )
+        # The start goes in apart from the scene's attitudes, so the batch shares Rd.
+        sc, R = with_start(with_gains(scene, k_R, k_Omega), R, W)
+        return _rollout(sc.for_step(args[1], args[2]), *args, program, R0=R)
 
     return jnp.mean(jax.vmap(one)(R0, Omega0))
 

@@ -376,3 +376,47 @@ def test_compile_time_does_not_grow_with_n_steps():
     small, big = min(times[10]), min(times[10_000])
     print(f"compile time: 10 steps {small:.3f} s, 10^4 steps {big:.3f} s")
     assert big < 2.0 * small, times
+
+
+def _scan_carries(jaxpr):
+    """The carry avals of every `scan` in ``jaxpr``, nested ones included."""
+    out = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "scan":
+            nc, ncar = eqn.params["num_consts"], eqn.params["num_carry"]
+            out.append([v.aval for v in eqn.invars[nc : nc + ncar]])
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (tuple, list)) else (p,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    out += _scan_carries(inner)
+    return out
+
+
+def test_batched_runs_share_the_reference_attitude():
+    """Runs that share Rd's start carry it unbatched: integrated once per batch, not per run."""
+    from so3jax._simulate import simulate_from
+    from so3jax._tune import with_gains, with_initial_state, with_start
+
+    sc = so3jax.scenes.seed()
+    method, dt, n = so3jax.RKMK4(), 0.01, 8
+    R0, W0 = so3jax.initial_states(0, 3)
+    k = jnp.array([2.0, 4.0, 8.0])
+
+    def starts(R, W):  # a batch of starts (what sweep and expected_cost run)
+        sc1, R1 = with_start(sc, R, W)
+        return simulate_from(sc1, R1, method, dt, n).R
+
+    def gains(k):  # a gain sweep from one start, through the public simulate
+        return so3jax.simulate(with_gains(sc, k, 1.0), method, dt, n).R
+
+    for fn, args in ((starts, (R0, W0)), (gains, (k,))):
+        carries = _scan_carries(jax.make_jaxpr(jax.vmap(fn))(*args).jaxpr)
+        flat = max(carries, key=len)  # the scalarized step loop: one carry per component
+        unbatched = [a for a in flat if a.shape == () and jnp.issubdtype(a.dtype, jnp.floating)]
+        assert len(unbatched) >= 9, [a.str_short() for a in flat]  # Rd's 9 components
+    # ... and the numbers are those of runs one at a time.
+    batch = jax.vmap(starts)(R0, W0)
+    for b in range(3):
+        one = so3jax.simulate(with_initial_state(sc, R0[b], W0[b]), method, dt, n).R
+        np.testing.assert_allclose(batch[b], one, rtol=0, atol=1e-14)
