@@ -208,7 +208,6 @@ def split_scene(scene, method, dt, t0):
     return (dyn, dt, t0), unpack
 
 
-@eqx.filter_jit
 def simulate_from(scene, R0, method, dt, n_steps: int, save_every: int = 1, scalarize=None):
     """`simulate` (fixed steps, ``t0 = 0``) with the body's start ``R0`` given apart.
 
@@ -252,6 +251,7 @@ def engine_step(guarded):
     return step
 
 
+@eqx.filter_jit
 def _simulate(
     scene,
     method,

@@ -420,3 +420,22 @@ def test_batched_runs_share_the_reference_attitude():
     for b in range(3):
         one = so3jax.simulate(with_initial_state(sc, R0[b], W0[b]), method, dt, n).R
         np.testing.assert_allclose(batch[b], one, rtol=0, atol=1e-14)
+
+
+def test_restarted_runs_reuse_the_compiled_program():
+    """`simulate` is jitted: a run from another state of the same shapes traces nothing."""
+    traces = []
+
+    class Counted(ForcedBody):
+        def torque(self, t, y):
+            traces.append(None)
+            return super().torque(t, y)
+
+    fb = free_body()
+    sc = Counted(body=fb.body, y0=fb.y0)
+    tr = so3jax.simulate(sc, so3jax.RKMK4(), 0.01, 5)
+    n = len(traces)
+    assert n > 0
+    tr2 = so3jax.simulate(eqx.tree_at(lambda s: s.y0, sc, tr.y), so3jax.RKMK4(), 0.01, 5, t0=0.05)
+    assert len(traces) == n
+    assert not np.allclose(tr2.R, tr.R)
