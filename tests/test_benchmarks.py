@@ -112,3 +112,17 @@ def test_difftune_quick(tmp_path):
     assert len(rmse) == 11 and rmse[-1] < rmse[0]  # 10 iterations of descent
     assert data["gradient_forward_reverse_agreement"] < 1e-10
     assert min(min(v) for v in data["gains_final"].values()) >= 0.5
+
+
+@pytest.mark.slow
+def test_shared_reference_quick(tmp_path):
+    res = _run("shared_reference.py", tmp_path)
+    rows = res["rows"]
+    assert {(r["batch"], r["Rd"]) for r in rows} == {
+        (b, rd)
+        for b in ("vmap(simulate) over gain pairs", "expected_cost over starts")
+        for rd in ("shared", "per run")
+    }
+    for r in rows:
+        assert r["body_steps_per_s"] > 0 and r["speedup"] > 0
+        assert r["max_diff_vs_per_run"] < 1e-12  # the same numbers either way
