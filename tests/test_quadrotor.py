@@ -360,8 +360,9 @@ def test_sweep_takes_quadrotor_scenes(tmp_path):
 
     # Sampled control: upside-down starts recover; no step limit from the feedback.
     sc = quadrotor_recovery(control_period=0.01)
+    # (The array program compiles faster; the CLI test in test_sweep.py runs the scalarized one.)
     r = s.sweep(sc, [8.81], [2.54], n_attitudes=3, key=2, dt=0.01, n_steps=300, save_every=3,
-                position_threshold=1.0, progress=False)  # fmt: skip
+                position_threshold=1.0, scalarize=False, progress=False)  # fmt: skip
     # No step limit from held feedback: a failure confirmed at half the step is the sampled
     # closed loop diverging
     # (attitude 1 passes the singularity of Rc, Omega_c about 500 rad/s, where a 100 Hz
