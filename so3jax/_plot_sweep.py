@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._sweep import _nan_reduce
+
 __all__ = ["sweep_heatmaps", "settling_distribution", "worst_attitudes", "tune_figure"]
 
 
@@ -54,7 +56,7 @@ def sweep_heatmaps(result):
     right = (stable, "largest stable dt (s), linearised", "cividis", dict(norm=LogNorm(lo, hi)))
     if not finite.any() and "final_position_error" in result.metrics:
         err = result._masked(result.metrics["final_position_error"])
-        err = result.as_grid(_nan_median(err))
+        err = result.as_grid(_nan_reduce(np.nanmedian, err))
         right = (err, "median final |e_x| (m)", "cividis", {})
     panels = (
         (med_shown, "median settling time (s)", "viridis", dict(vmin=0.0, vmax=horizon)),
@@ -123,14 +125,6 @@ def sweep_heatmaps(result):
         fontsize=10,
     )
     return fig
-
-
-def _nan_median(values: np.ndarray) -> np.ndarray:
-    """Median over axis 1, NaN (quietly) for rows with no finite value."""
-    out = np.full(values.shape[0], np.nan)
-    rows = ~np.all(np.isnan(values), axis=1)
-    out[rows] = np.nanmedian(values[rows], axis=1)
-    return out
 
 
 def _is_geometric(x) -> bool:

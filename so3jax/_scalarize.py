@@ -37,7 +37,15 @@ import jax.numpy as jnp
 import numpy as np
 from jax.extend import core as jex_core
 
-__all__ = ["scalarize", "scalar_body", "to_components", "from_components", "ScalarizeError"]
+__all__ = [
+    "scalarize",
+    "flat_program",
+    "split",
+    "join",
+    "to_components",
+    "from_components",
+    "ScalarizeError",
+]
 
 
 class ScalarizeError(NotImplementedError):
@@ -416,43 +424,6 @@ def scalarize(fn: Callable, *example_args) -> Callable:
 def _flat_components(tree) -> list:
     """Every scalar component of every leaf of ``tree``, in order."""
     return [leaf[idx] for leaf in jax.tree.leaves(tree) for idx in np.ndindex(*jnp.shape(leaf))]
-
-
-def scalar_body(step: Callable, example):
-    """A carry-to-carry function as a scan body over flat scalar components.
-
-    Returns ``(split, body, join)``: ``split(carry)`` is the flat list of scalar
-    components of a carry shaped like ``example``, ``body(flat)`` applies
-    ``step`` to them (scalarized), and ``join(flat)`` rebuilds the carry. Run
-    ``lax.scan`` over ``body`` and ``split``/``join`` only at the ends, so the
-    loop carries no arrays to slice and stack each step.
-    """
-    run = scalarize(step, example)
-    leaves, tree = jax.tree.flatten(example)
-    shapes = [jnp.shape(leaf) for leaf in leaves]
-    dtypes = [jnp.result_type(leaf) for leaf in leaves]
-
-    def parts(flat):
-        return _parts(flat, shapes)
-
-    def body(flat):
-        out = run(jax.tree.unflatten(tree, parts(flat)))
-        comps = [v for leaf in jax.tree.leaves(out) for v in leaf.reshape(-1)]
-        # Constants folded at trace time come back as NumPy scalars: give them the
-        # carry's dtypes (a scan carry must keep its types).
-        return [jnp.asarray(v, dtype=a.dtype) for v, a in zip(comps, flat, strict=True)]
-
-    def join(flat):
-        arrays = []
-        for part, dt in zip(parts(flat), dtypes, strict=True):
-            if part.size == 0:
-                arrays.append(jnp.zeros(part.shape, dt))
-                continue
-            batch = _bshape(list(part.reshape(-1)))
-            arrays.append(from_components(part, batch).astype(dt))
-        return jax.tree.unflatten(tree, arrays)
-
-    return _flat_components, body, join
 
 
 def _parts(flat, shapes) -> list:
