@@ -841,7 +841,7 @@ def sweep_quadrotor(
     """
     from ._integrators import RKMK4
     from ._simulate import simulate
-    from ._trajectory import OK
+    from ._trajectory import OK, settling_time
 
     if not isinstance(scene, Quadrotor):
         raise TypeError(f"scene must be a Quadrotor scene, got {type(scene).__name__}")
@@ -865,19 +865,10 @@ def sweep_quadrotor(
         sc = eqx.tree_at(lambda s: (s.gains, s.y0), scene, (g, _restart(scene, R)))
         tr = simulate(sc, method, dt, n_steps, save_every)
         ok = tr.status.code == OK
-        e = jnp.sqrt(jnp.sum(tr.extras["e_x"] ** 2, -1))
-        n = e.shape[0]
-        last_above = jnp.max(jnp.where(~(e < threshold), jnp.arange(n), -1))
-        t_settle = jnp.where(last_above < n - 1, tr.t[jnp.minimum(last_above + 1, n - 1)], jnp.inf)
+        e, out = position_metrics(tr)
+        out["settling_time"] = settling_time(tr.t, e < threshold)
+        out["final_psi"] = tr.extras["Psi"][-1]
         nan = jnp.array(jnp.nan, dtype)
-        out = {
-            "final_position_error": e[-1],
-            "max_position_error": jnp.max(e),
-            "rms_position_error": jnp.sqrt(jnp.mean(e**2)),
-            "settling_time": t_settle,
-            "final_psi": tr.extras["Psi"][-1],
-            "min_thrust_axis_up": jnp.min(tr.R[:, 2, 2]),
-        }
         out = {k: jnp.where(ok, v, nan) for k, v in out.items()}
         out["status_code"] = tr.status.code
         return out
@@ -887,6 +878,23 @@ def sweep_quadrotor(
     run = eqx.filter_jit(jax.vmap(one))
     out = run(jax.tree.map(lambda a: a[gi], gains), R0[ri])
     return {k: np.asarray(v).reshape(G, N) for k, v in out.items()}
+
+
+def position_metrics(tr) -> tuple[Array, dict]:
+    """``(|e_x|, metrics)`` of a quadrotor `Trajectory` over its saved points.
+
+    ``metrics``: ``final_position_error``, ``max_position_error``,
+    ``rms_position_error`` and ``min_thrust_axis_up``, the least
+    ``R_33 = cos(thrust axis, up)`` (``e3`` down, thrust along ``-R e3``;
+    below 0: upside down). Failed runs are for the caller to mask.
+    """
+    e = jnp.sqrt(jnp.sum(tr.extras["e_x"] ** 2, -1))
+    return e, {
+        "final_position_error": e[-1],
+        "max_position_error": jnp.max(e),
+        "rms_position_error": jnp.sqrt(jnp.mean(e**2)),
+        "min_thrust_axis_up": jnp.min(tr.R[:, 2, 2]),
+    }
 
 
 def _restart(scene: Quadrotor, R0: Array) -> LieState:

@@ -113,20 +113,7 @@ def simulate(
     save_every = _check_int(save_every, "save_every", 1)
     if n_steps % save_every:
         raise ValueError(f"n_steps ({n_steps}) must be a multiple of save_every ({save_every})")
-    dtype = scene.y0.R.dtype
-    dt = _check_dt(dt, dtype)
-    t0 = jnp.asarray(t0, dtype=dtype)
-    scene = scene.for_step(dt, t0)
-    return _simulate(
-        scene,
-        method,
-        dt,
-        t0,
-        n_steps // save_every,
-        save_every,
-        _program(scalarize),
-        bool(compensated),
-    )
+    return simulate_from(scene, None, method, dt, n_steps, save_every, scalarize, t0, compensated)
 
 
 def guarded_step(scene, method, dt, t0, compensated: bool = False):
@@ -208,18 +195,30 @@ def split_scene(scene, method, dt, t0):
     return (dyn, dt, t0), unpack
 
 
-def simulate_from(scene, R0, method, dt, n_steps: int, save_every: int = 1, scalarize=None):
-    """`simulate` (fixed steps, ``t0 = 0``) with the body's start ``R0`` given apart.
+def simulate_from(
+    scene,
+    R0,
+    method,
+    dt,
+    n_steps: int,
+    save_every: int = 1,
+    scalarize=None,
+    t0=0.0,
+    compensated: bool = False,
+):
+    """A fixed-step `simulate` (arguments already checked) with the body's start
+    ``R0`` given apart (``None``: the scene's own).
 
     For batches of starts (`sweep`): the scene's own attitude array, with its
     reference ``Rd0``, stays unbatched, and so does ``Rd`` (see `split_groups`).
     """
     dtype = scene.y0.R.dtype
     dt = _check_dt(dt, dtype)
-    t0 = jnp.zeros((), dtype)
+    t0 = jnp.asarray(t0, dtype=dtype)
     scene = scene.for_step(dt, t0)
-    n = n_steps // save_every
-    return _simulate(scene, method, dt, t0, n, save_every, _program(scalarize), False, R0)
+    n_save = n_steps // save_every
+    program = _program(scalarize)
+    return _simulate(scene, method, dt, t0, n_save, save_every, program, bool(compensated), R0)
 
 
 def split_groups(y: LieState, R0=None) -> tuple:

@@ -58,12 +58,12 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._integrators import RKMK4, AbstractLieSolver
-from ._quadrotor import Quadrotor, _restart
+from ._quadrotor import Quadrotor, _restart, position_metrics
 from ._simulate import simulate, simulate_from
 from ._so3 import random_rotation
 from ._stability import SAFETY, stable_dt
 from ._sweep_params import apply_params, check_params, draw, prepare_scene, split_params
-from ._trajectory import OK, _check_int
+from ._trajectory import OK, _check_int, settling_time
 from ._tune import (
     CostWeights,
     _check_tracking_scene,
@@ -477,15 +477,8 @@ def _run_metrics(
     sc, R0 = with_start(with_gains(sc, k_R, k_O), R0, W0)
     traj = simulate_from(sc, R0, method, dt, n_steps, save_every, scalarize)
     psi = 0.5 * (3.0 - jnp.sum(traj.Rd * traj.R, axis=(-1, -2)))
-    t_settle = _settling_time(traj.t, psi < threshold)
+    t_settle = settling_time(traj.t, psi < threshold)
     return _stats(traj, psi, t_settle, tracking_cost(traj, sc, weights))
-
-
-def _settling_time(t, inside):
-    """The first saved time after which ``inside`` holds at every later point (``inf``: never)."""
-    n = inside.shape[0]
-    last_out = jnp.max(jnp.where(~inside, jnp.arange(n), -1))
-    return jnp.where(last_out < n - 1, t[jnp.minimum(last_out + 1, n - 1)], jnp.inf)
 
 
 def _stats(traj, psi, t_settle, cost) -> dict:
@@ -522,8 +515,8 @@ def _quadrotor_metrics(
     traj = simulate(sc, method, dt, n_steps, save_every, scalarize=scalarize)
     ex = traj.extras
     psi = ex["Psi"]
-    e = jnp.sqrt(jnp.sum(ex["e_x"] ** 2, -1))
-    t_settle = _settling_time(traj.t, (psi < psi_thr) & (e < pos_thr))
+    e, extra = position_metrics(traj)
+    t_settle = settling_time(traj.t, (psi < psi_thr) & (e < pos_thr))
     f = (
         e**2
         + weights.psi * psi
@@ -534,13 +527,6 @@ def _quadrotor_metrics(
     out = _stats(traj, psi, t_settle, cost)
     nan = jnp.array(jnp.nan, dtype)
     ok = traj.status.code == OK
-    extra = {
-        "final_position_error": e[-1],
-        "max_position_error": jnp.max(e),
-        "rms_position_error": jnp.sqrt(jnp.mean(e**2)),
-        # cos(thrust axis, up) = R_33 (e3 down, thrust along -R e3): < 0 upside down.
-        "min_thrust_axis_up": jnp.min(traj.R[:, 2, 2]),
-    }
     out.update({k: jnp.where(ok, v, nan) for k, v in extra.items()})
     return out
 
@@ -849,8 +835,8 @@ def sweep(
     kr, ko, grid_shape = _gain_pairs(k_R, k_Omega, grid, bool(allow_negative_gains))
     G = kr.shape[0]
     arrays, dists = split_params(params)
-    if quad and (set(arrays) | set(dists)) - {"Omega0"}:
-        bad = sorted((set(arrays) | set(dists)) - {"Omega0"})
+    bad = sorted((set(arrays) | set(dists)) - {"Omega0"})
+    if quad and bad:
         raise ValueError(
             f"params {bad} vary an attitude tracking scene; a quadrotor sweep takes only "
             "'Omega0' (vary the vehicle by building scenes with scenes.quadrotor)"

@@ -122,3 +122,14 @@ def _check_dt(dt, dtype) -> Array:
     else:
         dt = eqx.error_if(dt, ~(dt > 0), "dt must be positive and finite")
     return dt
+
+
+def settling_time(t: Array, inside: Array) -> Array:
+    """The first saved time after which ``inside`` holds at every later point.
+
+    ``t`` and ``inside`` have shape `(n,)`; ``inf`` if ``inside`` is false at
+    the last point.
+    """
+    n = inside.shape[0]
+    last_out = jnp.max(jnp.where(~inside, jnp.arange(n), -1))
+    return jnp.where(last_out < n - 1, t[jnp.minimum(last_out + 1, n - 1)], jnp.inf)

@@ -30,7 +30,6 @@ from ._integrators import RKMK4, AbstractLieSolver
 from ._scene import Scene
 from ._simulate import engine_step, guarded_step, join_groups, split_groups, split_scene
 from ._so3 import _as_float, _is_concrete, _mtv, _mv
-from ._state import LieState
 from ._trajectory import OK, Trajectory, _check_dt, _check_int
 from ._types import Array, ArrayLike
 
@@ -64,12 +63,8 @@ def with_gains(scene, k_R: Array, k_Omega: Array):
 
 def with_initial_state(scene, R0: Array, Omega0: Array):
     """The scene started from ``(R0, Omega0)`` (the reference ``Rd0`` is kept)."""
-    dtype = scene.y0.R.dtype
-    R0 = jnp.asarray(R0, dtype)
-    Rd0 = scene.y0.R[1]
-    memory = scene.controller.init_memory(R0, Rd0).astype(dtype)
-    x = jnp.concatenate([jnp.asarray(Omega0, dtype), memory])
-    return eqx.tree_at(lambda s: s.y0, scene, LieState(jnp.stack([R0, Rd0]), x))
+    scene, R0 = with_start(scene, R0, Omega0)
+    return eqx.tree_at(lambda s: s.y0.R, scene, jnp.stack([R0, scene.y0.R[1]]))
 
 
 def with_start(scene, R0: Array, Omega0: Array):
