@@ -135,7 +135,8 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
             out = jax.vmap(array_fn, in_axes=axes)(*args)
             return out, jax.tree.map(lambda _: True, out)
         try:
-            out = jax.vmap(scalar_fn, in_axes=axes)(*args)
+            cut = functools.partial(scalar_fn, cut=sc.cut_index(args))
+            out = jax.vmap(cut, in_axes=axes)(*args)
         except sc.ScalarizeError:
             out = jax.vmap(array_fn, in_axes=axes)(*args)
         return out, jax.tree.map(lambda _: True, out)
@@ -200,10 +201,10 @@ class _Loop:
         ys = jax.tree.map(lambda a: a.reshape((S * m,) + a.shape[2:])[: self.n_save], ys)
         return ys, cN
 
-    def fwd_scalar(self, P, c0):
+    def fwd_scalar(self, P, c0, cut=None):
         ex = (P, c0)
-        body, _ = sc.flat_program(lambda pc: (pc[0], self.step(*pc)), ex)
-        obs, obs_struct = sc.flat_program(lambda pc: self.observe(*pc), ex)
+        body, _ = sc.flat_program(lambda pc: (pc[0], self.step(*pc)), ex, cut)
+        obs, obs_struct = sc.flat_program(lambda pc: self.observe(*pc), ex, cut)
         flat, ys = self._save_loop(body, obs, sc.split(ex))
         _, cN = sc.join(flat, jax.eval_shape(lambda: ex))
         return sc.join(ys, obs_struct, (self.n_save,)), cN
@@ -229,10 +230,10 @@ class _Loop:
         x, dys = self._save_loop(self._tstep, self._tobs, (P, c0, dP, dc0))
         return dys, x[3]
 
-    def tan_scalar(self, P, c0, dP, dc0):
+    def tan_scalar(self, P, c0, dP, dc0, cut=None):
         ex = (P, c0, dP, dc0)
-        body, _ = sc.flat_program(self._tstep, ex)
-        tobs, tobs_struct = sc.flat_program(self._tobs, ex)
+        body, _ = sc.flat_program(self._tstep, ex, cut)
+        tobs, tobs_struct = sc.flat_program(self._tobs, ex, cut)
         flat, dys = self._save_loop(body, tobs, sc.split(ex))
         x = sc.join(flat, jax.eval_shape(lambda: ex))
         return sc.join(dys, tobs_struct, (self.n_save,)), x[3]
@@ -309,11 +310,11 @@ class _Loop:
         )
         return acc, lam
 
-    def adj_scalar(self, P, c0, ct_obs, ct_cN):
+    def adj_scalar(self, P, c0, ct_obs, ct_cN, cut=None):
         K, S = self.K, self.S
         j0 = jnp.zeros((), jnp.int32)
         ex_step = (P, c0, j0)
-        mstep, _ = sc.flat_program(lambda x: (x[0], self._masked_step(*x), x[2] + 1), ex_step)
+        mstep, _ = sc.flat_program(lambda x: (x[0], self._masked_step(*x), x[2] + 1), ex_step, cut)
         nP = len(sc.split(P))
         nc = len(sc.split(c0))
 
@@ -336,7 +337,7 @@ class _Loop:
         acc0 = [jnp.zeros_like(p) for p in _floats(P)]
         ct_o_ex = jax.tree.map(lambda a: a[0], ct_obs)
         ex_back = (P, c0, lam0, acc0, ct_o_ex, jnp.array(True), jnp.array(True))
-        back_flat, _ = sc.flat_program(self._vjp_step, ex_back)
+        back_flat, _ = sc.flat_program(self._vjp_step, ex_back, cut)
         n_lam = len(sc.split(lam0))
         n_acc = len(sc.split(acc0))
 
@@ -508,7 +509,7 @@ def run(
     if program == "array":
         fwd = loop.fwd_array
     elif program == "scalar":
-        fwd = _scalar_or_array(loop)
+        fwd = _dual(_scalar_or_array(loop), loop.fwd_scalar, "run")
     else:
         fwd = _dual(loop.fwd_array, loop.fwd_scalar, "run")
 
@@ -592,7 +593,7 @@ def _scalar_or_array(loop: _Loop) -> Callable:
 
     def fwd(P, c0):
         try:
-            return loop.fwd_scalar(P, c0)
+            return loop.fwd_scalar(P, c0, cut=sc.cut_index((P, c0)))
         except sc.ScalarizeError as e:
             warnings.warn(f"{e}; running the array program instead", stacklevel=4)
             return loop.fwd_array(P, c0)
