@@ -9,9 +9,13 @@ is, with no flag for the user to know:
   written (3-vectors and 3x3 matrices), the fastest layout for one trajectory;
 - **a batch under ``vmap``** executes the scalarized program
   (`so3jax._scalarize`): every scalar component of the carry is its own
-  contiguous ``(B,)`` array and a step is one fused elementwise kernel (a
-  structure-of-arrays layout). The switch is a `jax.custom_batching.custom_vmap`
-  rule, so nested ``vmap`` (gains x attitudes) and ``vmap`` inside ``jit`` take it;
+  contiguous ``(B,)`` array and a step is a few hundred small elementwise
+  kernels (a structure-of-arrays layout). The switch is a
+  `jax.custom_batching.custom_vmap` rule, so nested ``vmap`` (gains x
+  attitudes) and ``vmap`` inside ``jit`` take it. On CPU the rule also hands
+  the program an unbatched index (`so3jax._scalarize.cut_index`) with which it
+  cuts fusion where XLA would recompute shared values once per consumer
+  (`so3jax._scalarize.fusion_cut`);
 - **a differentiated run** (``grad``, ``jvp``, ``jacfwd``) is JAX's own
   derivative of the *checkpointed* array program (segments of about
   ``sqrt(n_steps)`` steps under `jax.checkpoint`): forward mode is one fused

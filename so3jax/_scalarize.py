@@ -475,18 +475,23 @@ def fusion_cut(values: list, index) -> list:
 def cut_index(tree):
     """An int32 scalar, 0 or 1, computed from data in ``tree`` (see `fusion_cut`).
 
-    ``None`` (no cuts) off CPU: a GPU conditional reads its index on the host.
+    It reads the first element of every floating-point leaf: any one of them
+    may be a constant XLA folds (a scene or a batch of starts closed over by
+    the caller's ``jit``), and a folded index would fold the cuts away with
+    it. ``None`` (no cuts) off CPU, where a conditional reads its index on the
+    host, or when ``tree`` holds no floating-point data.
     """
     if jax.default_backend() != "cpu":
         return None
-    for leaf in jax.tree.leaves(tree):
-        if not jnp.size(leaf):
-            continue
-        x = jnp.ravel(leaf)[0]
-        if jnp.issubdtype(x.dtype, jnp.inexact):
-            return jnp.isnan(x).astype(jnp.int32)
-        return jnp.clip(x, 0, 1).astype(jnp.int32)
-    return jnp.int32(0)
+    firsts = [
+        jnp.ravel(x)[0]
+        for x in jax.tree.leaves(tree)
+        if jnp.size(x) and jnp.issubdtype(jnp.result_type(x), jnp.inexact)
+    ]
+    if not firsts:
+        return None
+    total = functools.reduce(lambda a, b: a + b.astype(a.dtype), firsts)
+    return jnp.isnan(total).astype(jnp.int32)
 
 
 def _bind(eqn, ins):
