@@ -139,7 +139,8 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
             out = jax.vmap(array_fn, in_axes=axes)(*args)
             return out, jax.tree.map(lambda _: True, out)
         try:
-            cut = functools.partial(scalar_fn, cut=sc.cut_index(args))
+            index = sc.cut_index(args) if axis_size >= sc.CUT_MIN_BATCH else None
+            cut = functools.partial(scalar_fn, cut=index)
             out = jax.vmap(cut, in_axes=axes)(*args)
         except sc.ScalarizeError:
             out = jax.vmap(array_fn, in_axes=axes)(*args)
@@ -597,7 +598,7 @@ def _scalar_or_array(loop: _Loop) -> Callable:
 
     def fwd(P, c0):
         try:
-            return loop.fwd_scalar(P, c0, cut=sc.cut_index((P, c0)))
+            return loop.fwd_scalar(P, c0)
         except sc.ScalarizeError as e:
             warnings.warn(f"{e}; running the array program instead", stacklevel=4)
             return loop.fwd_array(P, c0)

@@ -179,6 +179,17 @@ def test_fusion_cuts_keep_values_and_survive_compilation():
     )
     assert "cond[" in str(jax.make_jaxpr(cut)(xs))
     assert "conditional(" in cut.lower(xs).compile().as_text()
+    # the index stays unbatched under nested vmap, so the cuts stay conditionals
+    def inner(x):
+        run, _ = flat_program(fn, ex, cut_index(x))
+        return jnp.stack(run([x[0], x[1], x[2]]))
+
+    nested = jax.jit(jax.vmap(jax.vmap(inner)))
+    xs3 = xs.reshape(8, 8, 3)
+    np.testing.assert_allclose(
+        np.asarray(nested(xs3)), np.asarray(ref).reshape(8, 8, 4), rtol=1e-14, atol=1e-14
+    )
+    assert "conditional(" in nested.lower(xs3).compile().as_text()
     # a NaN in the data picks the other identity branch: still the same values
     xs_nan = xs.at[0, 0].set(jnp.nan)
     out = np.asarray(cut(xs_nan))
