@@ -179,6 +179,7 @@ def test_fusion_cuts_keep_values_and_survive_compilation():
     )
     assert "cond[" in str(jax.make_jaxpr(cut)(xs))
     assert "conditional(" in cut.lower(xs).compile().as_text()
+
     # the index stays unbatched under nested vmap, so the cuts stay conditionals
     def inner(x):
         run, _ = flat_program(fn, ex, cut_index(x))
