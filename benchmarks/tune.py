@@ -11,7 +11,10 @@ engine (`so3jax._engine`):
 - reverse, discrete adjoint: the engine's own backward scan of ``jax.vjp`` of
   one step from checkpoints (``program="adjoint"``);
 - reverse, no checkpoints (memory ~ n);
-- forward mode (`jax.jacfwd`, 2 tangents).
+- forward mode (`jax.jacfwd`, 2 tangents);
+- forward mode through the engine's tangent program (``program="adjoint"``, what
+  ``tune(..., gradient="forward")`` uses): scalarized, with fusion cuts, for
+  batches of 32 runs or more.
 
 For each: run time (min over repeats, compiled), compile time, and XLA's temp
 memory (`compiled.memory_analysis()`), at two horizons and two batch sizes;
@@ -97,10 +100,12 @@ def main(argv=None):
             "reverse, discrete adjoint": jax.grad(lambda k: cost(k, program="adjoint")),
             "reverse, no checkpoints": jax.grad(lambda k: cost(k, None)),
             "forward mode (jacfwd)": jax.jacfwd(lambda k: cost(k, None)),
+            "forward mode, tangent program": jax.jacfwd(lambda k: cost(k, program="adjoint")),
         }
         if args.quick:  # the smoke run compiles the fewest programs
             variants.pop("forward pass, array program")
             variants.pop("reverse, no checkpoints")
+            variants.pop("forward mode, tangent program")
         base = None
         for name, fn in variants.items():
             r = measure(fn, k, repeats)

@@ -31,12 +31,14 @@ one step and its observation, with the states recomputed from checkpoints every
 ``K ~ sqrt(n_steps)`` steps), exact to round-off against plain autodiff. JAX ships
 no batching rule for ``linear_call``; `_register_linear_call_batching` adds one,
 so ``vmap(grad(...))`` and ``jacfwd`` work through it. Both its programs exist in
-the scalarized layout too (`BATCHED_LAYOUT`), which would fuse the backward step
-into one kernel, but XLA on CPU takes minutes to compile it (the scalarized
-adjoint step of the seed has about 9400 scalar operations: 24 s to compile
-unbatched, 100 s under ``vmap``, against about 3 s for the forward step), so the
-default keeps the array layout. See ``benchmarks/README.md`` for the measured
-ratios.
+the scalarized layout too (`BATCHED_LAYOUT`). The tangent program takes it for
+batches of 32 runs or more, where (with fusion cuts) ``jacfwd`` of the mean cost
+over 256 seed starts ran about 5x faster than JAX's ``jvp`` of the array program;
+``tune(..., gradient="forward")`` uses it. The adjoint stays in the array layout:
+XLA on CPU takes minutes to compile the scalarized one (the scalarized adjoint
+step of the seed has about 9400 scalar operations: 24 s to compile unbatched,
+100 s under ``vmap``, against about 3 s for the forward step). See
+``benchmarks/README.md`` for the measured ratios.
 
 Every program exists in both layouts (array and scalarized); a step with a
 primitive the scalarizer does not handle (a loop, dynamic indexing) runs the
@@ -118,8 +120,10 @@ def checkpoint_length(n_steps: int) -> int:
 # --------------------------------------------------------------------------
 
 
-#: The layout each program takes when batched (see `_dual`).
-BATCHED_LAYOUT = {"run": "scalar", "tangent": "array", "adjoint": "array"}
+#: The layout each program takes when batched (see `_dual`): ``"auto"`` is the
+#: scalarized layout for batches of `so3jax._scalarize.CUT_MIN_BATCH` runs or more
+#: (fusion cuts on), the array layout below that.
+BATCHED_LAYOUT = {"run": "scalar", "tangent": "auto", "adjoint": "array"}
 
 
 def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
@@ -135,7 +139,10 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
     @fn.def_vmap
     def _rule(axis_size, in_batched, *args):
         axes = tuple(jax.tree.map(lambda b: 0 if b else None, ib) for ib in in_batched)
-        if BATCHED_LAYOUT[what] == "array":
+        layout = BATCHED_LAYOUT[what]
+        if layout == "auto":
+            layout = "scalar" if axis_size >= sc.CUT_MIN_BATCH else "array"
+        if layout == "array":
             out = jax.vmap(array_fn, in_axes=axes)(*args)
             return out, jax.tree.map(lambda _: True, out)
         try:

@@ -213,3 +213,21 @@ def test_bad_program_is_rejected():
         s.simulate(s.scenes.seed(), "RKMK4", 0.01, 10)
     with pytest.raises(ValueError, match="n_steps"):
         s.simulate(s.scenes.seed(), s.RKMK4(), 0.01, 10, save_every=3)
+
+
+def test_scalarized_tangent_program_for_large_batches():
+    """32 starts or more: forward mode runs the scalarized tangent program (fusion cuts
+    included) and equals JAX's autodiff; `tune(gradient="forward")` goes through it."""
+    from so3jax._scalarize import CUT_MIN_BATCH
+
+    sc0 = _seed()
+    R0, W0 = s.initial_states(jax.random.PRNGKey(3), CUT_MIN_BATCH)
+
+    def cost(program):
+        return lambda k: s.expected_cost(
+            sc0, k[0], k[1], R0, W0, SEED_METHOD, DT, N, program=program
+        )
+
+    f = jax.jit(jax.jacfwd(cost("adjoint")))
+    assert "conditional(" in f.lower(K0).compile().as_text()  # scalarized, with cuts
+    assert _rel(f(K0), jax.grad(cost("autodiff"))(K0)) < 1e-10
