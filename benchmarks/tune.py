@@ -6,15 +6,16 @@ engine (`so3jax._engine`):
 
 - forward pass: the default program (scalarized under `vmap`), the baseline;
 - forward pass, array program (``program="array"``);
-- reverse (default): JAX's transpose of the checkpointed array program
-  (memory ~ sqrt(n));
+- reverse (default): with two gains, the Jacobian's two columns from the engine's
+  tangent program (scalarized for 32 runs or more), contracted with the cotangent;
+- reverse, checkpointed: JAX's transpose of the checkpointed array program
+  (``program="autodiff"``, memory ~ sqrt(n); the default before S19);
 - reverse, discrete adjoint: the engine's own backward scan of ``jax.vjp`` of
   one step from checkpoints (``program="adjoint"``);
-- reverse, no checkpoints (memory ~ n);
-- forward mode (`jax.jacfwd`, 2 tangents);
-- forward mode through the engine's tangent program (``program="adjoint"``, what
-  ``tune(..., gradient="forward")`` uses): scalarized, with fusion cuts, for
-  batches of 32 runs or more.
+- reverse, no checkpoints (JAX's transpose, memory ~ n);
+- forward mode (default, `jax.jacfwd`, 2 tangents): the engine's tangent program;
+- forward mode, JAX's ``jvp`` of the checkpointed array program
+  (``program="autodiff"``; the default before S19).
 
 For each: run time (min over repeats, compiled), compile time, and XLA's temp
 memory (`compiled.memory_analysis()`), at two horizons and two batch sizes;
@@ -96,16 +97,18 @@ def main(argv=None):
         variants = {
             "forward pass": lambda k: cost(k, None),
             "forward pass, array program": lambda k: cost(k, None, "array"),
-            "reverse, checkpointed": jax.grad(cost),
+            "reverse (default)": jax.grad(cost),
+            "reverse, checkpointed": jax.grad(lambda k: cost(k, program="autodiff")),
             "reverse, discrete adjoint": jax.grad(lambda k: cost(k, program="adjoint")),
-            "reverse, no checkpoints": jax.grad(lambda k: cost(k, None)),
+            "reverse, no checkpoints": jax.grad(lambda k: cost(k, None, "autodiff")),
             "forward mode (jacfwd)": jax.jacfwd(lambda k: cost(k, None)),
-            "forward mode, tangent program": jax.jacfwd(lambda k: cost(k, program="adjoint")),
+            "forward mode, JAX's jvp": jax.jacfwd(lambda k: cost(k, None, "autodiff")),
         }
         if args.quick:  # the smoke run compiles the fewest programs
             variants.pop("forward pass, array program")
             variants.pop("reverse, no checkpoints")
-            variants.pop("forward mode, tangent program")
+            variants.pop("reverse, checkpointed")
+            variants.pop("forward mode, JAX's jvp")
         base = None
         for name, fn in variants.items():
             r = measure(fn, k, repeats)

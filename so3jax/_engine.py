@@ -16,25 +16,31 @@ is, with no flag for the user to know:
   the program an unbatched index (`so3jax._scalarize.cut_index`) with which it
   cuts fusion where XLA would recompute shared values once per consumer
   (`so3jax._scalarize.fusion_cut`);
-- **a differentiated run** (``grad``, ``jvp``, ``jacfwd``) is JAX's own
-  derivative of the *checkpointed* array program (segments of about
-  ``sqrt(n_steps)`` steps under `jax.checkpoint`): forward mode is one fused
-  scan of the step and its tangent; reverse mode stores one carry per segment,
-  so its memory grows like ``sqrt(n_steps)``. The forward value of a
+- **a differentiated run** hangs its derivatives on one ``jax.custom_jvp``
+  whose tangent is a `jax.custom_derivatives.linear_call`. Forward mode
+  (``jvp``, ``jacfwd``) runs the engine's tangent program, a scan of
+  ``jax.jvp`` of one step, scalarized for batches of 32 runs or more. Reverse
+  mode (``grad``) through at most `FORWARD_JACOBIAN_MAX` differentiated
+  scalars (two gains, six per-axis gains) takes the Jacobian's columns from
+  that tangent program, one run each, and contracts them with the
+  cotangents: its memory does not grow with the horizon beyond the saved
+  points. Through more scalars it is JAX's transpose of the *checkpointed*
+  array program (segments of about ``sqrt(n_steps)`` steps under
+  `jax.checkpoint`), whose memory grows like ``sqrt(n_steps)``. The value of a
   differentiated batch still comes from the scalarized program.
+  ``program="autodiff"`` is JAX's own derivative of the checkpointed array
+  program throughout (the reference).
 
-``program="adjoint"`` swaps in the engine's own derivative programs, hung on one
-``jax.custom_jvp`` whose tangent is a `jax.custom_derivatives.linear_call`:
-forward mode runs a scan of ``jax.jvp`` of one step, and reverse mode transposes
-the ``linear_call`` into a **discrete adjoint** (a backward scan of ``jax.vjp`` of
+``program="adjoint"`` keeps the tangent program and makes reverse mode a
+**discrete adjoint** whatever the number of inputs (a backward scan of ``jax.vjp`` of
 one step and its observation, with the states recomputed from checkpoints every
 ``K ~ sqrt(n_steps)`` steps), exact to round-off against plain autodiff. JAX ships
 no batching rule for ``linear_call``; `_register_linear_call_batching` adds one,
-so ``vmap(grad(...))`` and ``jacfwd`` work through it. Both its programs exist in
-the scalarized layout too (`BATCHED_LAYOUT`). The tangent program takes it for
-batches of 32 runs or more, where (with fusion cuts) ``jacfwd`` of the mean cost
-over 256 seed starts ran about 5x faster than JAX's ``jvp`` of the array program;
-``tune(..., gradient="forward")`` uses it. The adjoint stays in the array layout:
+so ``vmap(grad(...))`` and ``jacfwd`` work through it. Both derivative programs
+exist in the scalarized layout too (`BATCHED_LAYOUT`). The tangent program takes
+it for batches of 32 runs or more, where (with fusion cuts) ``jacfwd`` of the mean
+cost over 256 seed starts ran about 5x faster than JAX's ``jvp`` of the array
+program. The adjoint stays in the array layout:
 XLA on CPU takes minutes to compile the scalarized one (the scalarized adjoint
 step of the seed has about 9400 scalar operations: 24 s to compile unbatched,
 100 s under ``vmap``, against about 3 s for the forward step). See
@@ -516,8 +522,8 @@ def run(
     loop = _Loop(step_p, obs_p, n_steps, save_every, K)
     if program == "autodiff":
         return loop.fwd_checkpointed(P, carry0)
-    if program == "adjoint" and _HAVE_LINEAR_CALL_BATCHING:
-        return _adjoint_run(loop, P, carry0)
+    if program in ("auto", "adjoint") and _HAVE_LINEAR_CALL_BATCHING:
+        return _adjoint_run(loop, P, carry0, reverse=program)
     if program == "array":
         fwd = loop.fwd_array
     elif program == "scalar":
@@ -552,8 +558,76 @@ def run(
     return f(P, carry0)
 
 
-def _adjoint_run(loop: _Loop, P, carry0):
-    """The run with the engine's own tangent program and discrete adjoint."""
+#: Reverse mode through at most this many differentiated scalars takes the
+#: Jacobian's columns from the tangent program, one run each, instead of the
+#: discrete adjoint (`_transpose_by_columns`).
+FORWARD_JACOBIAN_MAX = 8
+
+
+def _transpose_by_columns(linear: Callable, like: list, cts) -> list:
+    """``J^T cts`` for ``linear = J`` (inputs shaped like ``like``), one column at a time.
+
+    Each column is one run of the tangent program with a unit input (under
+    `jax.lax.map`, so the program compiles once); with a handful of inputs this
+    is cheaper than a backward pass: nothing is recomputed from checkpoints,
+    and a batch runs the scalarized tangent program.
+    """
+    shapes = [jnp.shape(x) for x in like]
+    sizes = [math.prod(sh) for sh in shapes]
+    dtype = jnp.result_type(*like)
+    n = sum(sizes)
+    ct_leaves = jax.tree.leaves(cts)
+
+    def column(unit):
+        parts, i = [], 0
+        for sh, k in zip(shapes, sizes, strict=True):
+            parts.append(unit[i : i + k].reshape(sh))
+            i += k
+        col = jax.tree.leaves(linear(parts))
+        return sum(jnp.sum(c * d) for c, d in zip(ct_leaves, col, strict=True))
+
+    flat = jax.lax.map(column, jnp.eye(n, dtype=dtype))
+    out, i = [], 0
+    for sh, k in zip(shapes, sizes, strict=True):
+        out.append(flat[i : i + k].reshape(sh))
+        i += k
+    return out
+
+
+def _autodiff_transpose(loop: _Loop, nz: list) -> Callable:
+    """Reverse mode as JAX's transpose of the checkpointed array program.
+
+    Only the float inputs flagged in ``nz`` are differentiated (the others are
+    held at their primal values), as in `run`'s symbolic-zero rule.
+    """
+
+    def adj(P, c0, ct_ys, ct_cN):
+        pf, cf = _floats(P), _floats(c0)
+        fixed = pf + cf
+
+        def g(*xs):
+            it = iter(xs)
+            full = [next(it) if z else x for z, x in zip(nz, fixed, strict=True)]
+            Pp, cp = _with_floats(P, full[: len(pf)]), _with_floats(c0, full[len(pf) :])
+            ys, cN = loop.fwd_checkpointed(Pp, cp)
+            return ys, _floats(cN)
+
+        xs = [x for x, z in zip(fixed, nz, strict=True) if z]
+        return list(jax.vjp(g, *xs)[1]((ct_ys, list(ct_cN))))
+
+    return adj
+
+
+def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
+    """The run with the engine's own tangent program and a custom reverse mode.
+
+    Forward mode is the tangent program (`_Loop.tan_array` / `_Loop.tan_scalar`).
+    Reverse mode, ``reverse="adjoint"``: the discrete adjoint (`_Loop.adj_array`
+    / `_Loop.adj_scalar`). ``reverse="auto"``: the Jacobian's columns from the
+    tangent program when at most `FORWARD_JACOBIAN_MAX` scalars are
+    differentiated (`_transpose_by_columns`), else JAX's transpose of the
+    checkpointed array program (`_autodiff_transpose`).
+    """
     fwd = _dual(loop.fwd_array, loop.fwd_scalar, "run")
     tan = _dual(loop.tan_array, loop.tan_scalar, "tangent")
     adj = _dual(loop.adj_array, loop.adj_scalar, "adjoint")
@@ -585,6 +659,12 @@ def _adjoint_run(loop: _Loop, P, carry0):
         def transpose(res, cts):
             P, c0 = res
             ct_ys, ct_cN = cts
+            if reverse == "auto":
+                if sum(math.prod(jnp.shape(x)) for x in lin) <= FORWARD_JACOBIAN_MAX:
+                    return _transpose_by_columns(
+                        lambda lin_t: tangent(res, lin_t), lin, (ct_ys, list(ct_cN))
+                    )
+                return _autodiff_transpose(loop, nz)(P, c0, ct_ys, ct_cN)
             gP, gc = adj(P, c0, ct_ys, ct_cN)
             return [g for g, z in zip(list(gP) + list(gc), nz, strict=True) if z]
 

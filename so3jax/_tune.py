@@ -563,9 +563,6 @@ def tune(
             weights,
             save_every=save_every,
             checkpoint_every=checkpoint_every,
-            # Forward mode through the engine's tangent program: scalarized (and
-            # several times faster) for 32 starts or more.
-            program="adjoint" if gradient == "forward" else "auto",
         )
 
     history, thetas = _descend(loss, theta, optimizer, opt_state, n_iter, gradient, None, progress)
