@@ -493,12 +493,13 @@ def run(
     - `n_steps`, `save_every`: Python ints, ``n_steps % save_every == 0``.
     - `checkpoint`: steps per checkpointed segment of the adjoint (default
       about ``sqrt(n_steps)``; ``n_steps`` keeps every state).
-    - `program`: ``"auto"`` (the engine decides); ``"array"`` or ``"scalar"``
-      (one layout for the forward run whatever the batching: for benchmarks);
-      ``"autodiff"`` (the checkpointed array program, differentiated and
-      batched by JAX alone: the reference); ``"adjoint"`` (derivatives from the
-      engine's tangent program and discrete adjoint, layouts per
-      `BATCHED_LAYOUT`).
+    - `program`: ``"auto"`` (the engine decides, see the module docstring);
+      ``"array"`` or ``"scalar"`` (one layout for the forward run whatever the
+      batching, derivatives from JAX's ``jvp`` of the checkpointed array
+      program: for benchmarks); ``"autodiff"`` (the checkpointed array
+      program, differentiated and batched by JAX alone: the reference);
+      ``"adjoint"`` (derivatives from the engine's tangent program and, in
+      reverse mode, always its discrete adjoint; layouts per `BATCHED_LAYOUT`).
 
     **Returns:** ``(observations, final carry)``; every observation leaf has a
     leading axis of length ``n_steps // save_every`` (the states after steps
