@@ -574,23 +574,23 @@ def _transpose_by_columns(linear: Callable, like: list, cts) -> list:
     and a batch runs the scalarized tangent program.
     """
     shapes = [jnp.shape(x) for x in like]
+    dtypes = [jnp.result_type(x) for x in like]
     sizes = [math.prod(sh) for sh in shapes]
-    dtype = jnp.result_type(*like)
     n = sum(sizes)
     ct_leaves = jax.tree.leaves(cts)
 
     def column(unit):
         parts, i = [], 0
-        for sh, k in zip(shapes, sizes, strict=True):
-            parts.append(unit[i : i + k].reshape(sh))
+        for sh, dt, k in zip(shapes, dtypes, sizes, strict=True):
+            parts.append(unit[i : i + k].reshape(sh).astype(dt))
             i += k
         col = jax.tree.leaves(linear(parts))
         return sum(jnp.sum(c * d) for c, d in zip(ct_leaves, col, strict=True))
 
-    flat = jax.lax.map(column, jnp.eye(n, dtype=dtype))
+    flat = jax.lax.map(column, jnp.eye(n, dtype=jnp.result_type(*like)))
     out, i = [], 0
-    for sh, k in zip(shapes, sizes, strict=True):
-        out.append(flat[i : i + k].reshape(sh))
+    for sh, dt, k in zip(shapes, dtypes, sizes, strict=True):
+        out.append(flat[i : i + k].reshape(sh).astype(dt))
         i += k
     return out
 
