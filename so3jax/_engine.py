@@ -101,6 +101,12 @@ def _tangent_tree(primal, float_tangents):
     return jax.tree.unflatten(treedef, new)
 
 
+def _fill(nz: list, xs, others: list) -> list:
+    """``others`` with the entries flagged in ``nz`` replaced, in order, by ``xs``."""
+    it = iter(xs)
+    return [next(it) if z else o for z, o in zip(nz, others, strict=True)]
+
+
 def _segment_blocks(n: int, target: int) -> int:
     """Blocks per segment: a divisor of ``n`` within 2x of ``target`` if there is one.
 
@@ -145,14 +151,15 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
     @fn.def_vmap
     def _rule(axis_size, in_batched, *args):
         axes = tuple(jax.tree.map(lambda b: 0 if b else None, ib) for ib in in_batched)
+        large = axis_size >= sc.CUT_MIN_BATCH  # fusion cuts pay from here on
         layout = BATCHED_LAYOUT[what]
         if layout == "auto":
-            layout = "scalar" if axis_size >= sc.CUT_MIN_BATCH else "array"
+            layout = "scalar" if large else "array"
         if layout == "array":
             out = jax.vmap(array_fn, in_axes=axes)(*args)
             return out, jax.tree.map(lambda _: True, out)
         try:
-            index = sc.cut_index(args) if axis_size >= sc.CUT_MIN_BATCH else None
+            index = sc.cut_index(args) if large else None
             cut = functools.partial(scalar_fn, cut=index)
             out = jax.vmap(cut, in_axes=axes)(*args)
         except sc.ScalarizeError:
@@ -547,9 +554,7 @@ def run(
         nz = [not isinstance(t, SymbolicZero) for t in t_leaves]
 
         def g(*xs):
-            it = iter(xs)
-            full = [next(it) if z else p for z, p in zip(nz, p_leaves, strict=True)]
-            return loop.fwd_checkpointed(*jax.tree.unflatten(treedef, full))
+            return loop.fwd_checkpointed(*jax.tree.unflatten(treedef, _fill(nz, xs, p_leaves)))
 
         xs = [p for p, z in zip(p_leaves, nz, strict=True) if z]
         ts = [t for t, z in zip(t_leaves, nz, strict=True) if z]
@@ -573,50 +578,39 @@ def _transpose_by_columns(linear: Callable, like: list, cts) -> list:
     is cheaper than a backward pass: nothing is recomputed from checkpoints,
     and a batch runs the scalarized tangent program.
     """
-    shapes = [jnp.shape(x) for x in like]
-    dtypes = [jnp.result_type(x) for x in like]
-    sizes = [math.prod(sh) for sh in shapes]
-    n = sum(sizes)
+    ends = np.cumsum([math.prod(jnp.shape(x)) for x in like]).tolist()
     ct_leaves = jax.tree.leaves(cts)
 
+    def unflatten(vec):  # a flat vector as arrays shaped and typed like ``like``
+        starts = [0] + ends[:-1]
+        return [
+            vec[a:b].reshape(jnp.shape(x)).astype(jnp.result_type(x))
+            for a, b, x in zip(starts, ends, like, strict=True)
+        ]
+
     def column(unit):
-        parts, i = [], 0
-        for sh, dt, k in zip(shapes, dtypes, sizes, strict=True):
-            parts.append(unit[i : i + k].reshape(sh).astype(dt))
-            i += k
-        col = jax.tree.leaves(linear(parts))
+        col = jax.tree.leaves(linear(unflatten(unit)))
         return sum(jnp.sum(c * d) for c, d in zip(ct_leaves, col, strict=True))
 
-    flat = jax.lax.map(column, jnp.eye(n, dtype=jnp.result_type(*like)))
-    out, i = [], 0
-    for sh, dt, k in zip(shapes, dtypes, sizes, strict=True):
-        out.append(flat[i : i + k].reshape(sh).astype(dt))
-        i += k
-    return out
+    return unflatten(jax.lax.map(column, jnp.eye(ends[-1], dtype=jnp.result_type(*like))))
 
 
-def _autodiff_transpose(loop: _Loop, nz: list) -> Callable:
+def _autodiff_transpose(loop: _Loop, nz: list, P, c0, ct_ys, ct_cN) -> list:
     """Reverse mode as JAX's transpose of the checkpointed array program.
 
     Only the float inputs flagged in ``nz`` are differentiated (the others are
     held at their primal values), as in `run`'s symbolic-zero rule.
     """
+    pf, cf = _floats(P), _floats(c0)
 
-    def adj(P, c0, ct_ys, ct_cN):
-        pf, cf = _floats(P), _floats(c0)
-        fixed = pf + cf
+    def g(*xs):
+        full = _fill(nz, xs, pf + cf)
+        Pp, cp = _with_floats(P, full[: len(pf)]), _with_floats(c0, full[len(pf) :])
+        ys, cN = loop.fwd_checkpointed(Pp, cp)
+        return ys, _floats(cN)
 
-        def g(*xs):
-            it = iter(xs)
-            full = [next(it) if z else x for z, x in zip(nz, fixed, strict=True)]
-            Pp, cp = _with_floats(P, full[: len(pf)]), _with_floats(c0, full[len(pf) :])
-            ys, cN = loop.fwd_checkpointed(Pp, cp)
-            return ys, _floats(cN)
-
-        xs = [x for x, z in zip(fixed, nz, strict=True) if z]
-        return list(jax.vjp(g, *xs)[1]((ct_ys, list(ct_cN))))
-
-    return adj
+    xs = [x for x, z in zip(pf + cf, nz, strict=True) if z]
+    return list(jax.vjp(g, *xs)[1]((ct_ys, list(ct_cN))))
 
 
 def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
@@ -647,8 +641,7 @@ def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
         pf, cf = _floats(P), _floats(c0)
 
         def fill(lin):
-            it = iter(lin)
-            full = [next(it) if z else jnp.zeros_like(x) for z, x in zip(nz, pf + cf, strict=True)]
+            full = _fill(nz, lin, [jnp.zeros_like(x) for x in pf + cf])
             return full[: len(pf)], full[len(pf) :]
 
         def tangent(res, lin):
@@ -665,7 +658,7 @@ def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
                     return _transpose_by_columns(
                         lambda lin_t: tangent(res, lin_t), lin, (ct_ys, list(ct_cN))
                     )
-                return _autodiff_transpose(loop, nz)(P, c0, ct_ys, ct_cN)
+                return _autodiff_transpose(loop, nz, P, c0, ct_ys, ct_cN)
             gP, gc = adj(P, c0, ct_ys, ct_cN)
             return [g for g, z in zip(list(gP) + list(gc), nz, strict=True) if z]
 

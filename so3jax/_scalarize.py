@@ -546,7 +546,7 @@ def _eval_with_cuts(closed, args, index, cone_limit: int):
     def read(v):
         return v.val if isinstance(v, jex_core.Literal) else env[v]
 
-    pending = set()
+    pending = {}  # vars waiting for a cut, in program order (a dict: deterministic HLO)
 
     def flush():
         live = list(pending)
@@ -566,7 +566,7 @@ def _eval_with_cuts(closed, args, index, cone_limit: int):
                 cone[v] = 0
             elif fan >= 2 and c >= cone_limit:
                 cone[v] = 0
-                pending.add(v)
+                pending[v] = None
             else:
                 cone[v] = c
     if pending:
@@ -574,7 +574,7 @@ def _eval_with_cuts(closed, args, index, cone_limit: int):
     return [read(v) for v in jaxpr.outvars]
 
 
-def flat_program(fn: Callable, example, cut_index=None, cut_cone: int = CUT_CONE):
+def flat_program(fn: Callable, example, index=None, cut_cone: int = CUT_CONE):
     """``fn`` (one pytree in, one out) as a function of flat scalar component lists.
 
     Returns ``(run, out_struct)``: ``run(flat)`` takes the components of a pytree
@@ -583,7 +583,7 @@ def flat_program(fn: Callable, example, cut_index=None, cut_cone: int = CUT_CONE
     ``out_struct`` is ``jax.eval_shape(fn, example)``. Raises `ScalarizeError`
     when ``fn`` uses a primitive the interpreter does not handle.
 
-    With ``cut_index`` (see `fusion_cut` and `cut_index`), the scalar program
+    With an ``index`` from `cut_index` (see `fusion_cut`), the scalar program
     is cut wherever XLA would otherwise recompute ``cut_cone`` or more
     operations once per consumer of a value: the fused computations of the
     batched seed step drop from about 25000 HLO instructions to about 6500 (the
@@ -604,13 +604,13 @@ def flat_program(fn: Callable, example, cut_index=None, cut_cone: int = CUT_CONE
             for v in np.asarray(leaf, dtype=object).reshape(-1)
         ]
 
-    if cut_index is None:
+    if index is None:
         return plain, out_struct
 
     def run_flat(flat):
         flat = [jnp.asarray(v) for v in flat]
         closed = jax.make_jaxpr(plain)(flat)
-        return _eval_with_cuts(closed, flat, cut_index, cut_cone)
+        return _eval_with_cuts(closed, flat, index, cut_cone)
 
     return run_flat, out_struct
 
