@@ -67,6 +67,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
 from jax.custom_derivatives import SymbolicZero, linear_call
+from jax.extend import core as jex_core
 
 from . import _scalarize as sc
 
@@ -107,6 +108,146 @@ def _fill(nz: list, xs, others: list) -> list:
     return [next(it) if z else o for z, o in zip(nz, others, strict=True)]
 
 
+def _pick(mask, xs) -> list:
+    """The entries of ``xs`` flagged in ``mask``."""
+    return [x for m, x in zip(mask, xs, strict=True) if m]
+
+
+def _depends(fn, args: list, dep: list) -> list:
+    """Which outputs of ``fn(*args)`` can have a tangent from the arguments flagged in ``dep``.
+
+    An abstract walk over ``fn``'s jaxpr (nothing runs) that tracks every
+    array element: a step that stacks the body's and the reference's attitudes
+    into one array and slices them apart again keeps them apart here (a walk
+    over whole arrays would not). Integer and boolean values carry no tangent,
+    nor does the predicate of a ``select_n`` (a freeze on failure selects
+    between states by a flag computed from all of them). Unknown primitives
+    are taken whole, which can only over-approximate.
+    """
+    spec = [jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)) for a in args]
+    closed = jax.make_jaxpr(fn)(*spec)
+    ins = [np.full(jnp.shape(a), bool(d)) for a, d in zip(args, dep, strict=True)]
+    return [bool(m.any()) for m in _mask_eval(closed.jaxpr, ins)]
+
+
+_SHAPE_OPS = {
+    "reshape": lambda x, p: np.reshape(x, p["new_sizes"]),
+    "squeeze": lambda x, p: np.squeeze(x, axis=tuple(p["dimensions"])),
+    "expand_dims": lambda x, p: np.expand_dims(x, tuple(p["dimensions"])),
+    "transpose": lambda x, p: np.transpose(x, p["permutation"]),
+    "rev": lambda x, p: np.flip(x, tuple(p["dimensions"])),
+    "slice": lambda x, p: x[
+        tuple(
+            slice(a, b, None if p["strides"] is None else p["strides"][i])
+            for i, (a, b) in enumerate(zip(p["start_indices"], p["limit_indices"], strict=True))
+        )
+    ],
+    "broadcast_in_dim": lambda x, p: np.broadcast_to(
+        np.expand_dims(
+            x, tuple(i for i in range(len(p["shape"])) if i not in p["broadcast_dimensions"])
+        ),
+        p["shape"],
+    ),
+    "reduce_sum": lambda x, p: np.any(x, axis=tuple(p["axes"])),
+    "reduce_max": lambda x, p: np.any(x, axis=tuple(p["axes"])),
+    "reduce_min": lambda x, p: np.any(x, axis=tuple(p["axes"])),
+}
+
+
+def _dot_mask(lhs, rhs, dimension_numbers) -> np.ndarray:
+    """The mask of ``dot_general(lhs, rhs)``: an entry depends on what it sums."""
+    (cl, cr), (bl, br) = dimension_numbers
+    letters = iter("abcdefghijklmnopqrstuvwxyz")
+    ls = [next(letters) for _ in range(lhs.ndim)]
+    rs = [next(letters) for _ in range(rhs.ndim)]
+    for i, j in zip(list(cl) + list(bl), list(cr) + list(br), strict=True):
+        rs[j] = ls[i]
+    free_l = [ls[i] for i in range(lhs.ndim) if i not in cl and i not in bl]
+    free_r = [rs[j] for j in range(rhs.ndim) if j not in cr and j not in br]
+    out = "".join([ls[i] for i in bl] + free_l + free_r)
+    a, b = lhs.astype(np.int64), rhs.astype(np.int64)
+    ones_a, ones_b = np.ones_like(a), np.ones_like(b)
+    spec = f"{''.join(ls)},{''.join(rs)}->{out}"
+    return (np.einsum(spec, a, ones_b) + np.einsum(spec, ones_a, b)) > 0
+
+
+def _mask_eval(jaxpr, ins: list) -> list:
+    """Element masks of ``jaxpr``'s outputs: which entries depend on the masked inputs."""
+    env = dict(zip(jaxpr.invars, ins, strict=True))
+
+    def read(v):
+        if isinstance(v, jex_core.Var) and v in env:
+            return env[v]
+        return np.zeros(np.shape(v.aval), bool)  # literals and constants
+
+    for e in jaxpr.eqns:
+        xs = [read(v) for v in e.invars]
+        name, prm = e.primitive.name, e.params
+        inner = prm.get("jaxpr", prm.get("call_jaxpr"))
+        inner = getattr(inner, "jaxpr", inner)
+        shapes = [tuple(v.aval.shape) for v in e.outvars]
+        try:
+            if name in _SHAPE_OPS:
+                outs = [np.asarray(_SHAPE_OPS[name](xs[0], prm), bool)]
+            elif name == "concatenate":
+                outs = [np.concatenate(xs, axis=prm["dimension"])]
+            elif name == "stack":
+                outs = [np.stack(xs, axis=prm["axis"])]
+            elif name == "split":
+                cuts = np.cumsum(prm["sizes"])[:-1]
+                outs = np.split(xs[0], cuts, axis=prm["axis"])
+            elif name == "dot_general":
+                outs = [_dot_mask(*xs, prm["dimension_numbers"])]
+            elif name in sc._ELEMENTWISE:
+                ys = xs[1:] if name == "select_n" else xs
+                outs = [np.logical_or.reduce([np.broadcast_to(y, shapes[0]) for y in ys])]
+            elif isinstance(inner, jex_core.Jaxpr) and len(inner.invars) == len(xs):
+                outs = _mask_eval(inner, xs)
+            else:
+                raise KeyError(name)
+            outs = [np.broadcast_to(o, sh) for o, sh in zip(outs, shapes, strict=True)]
+        except (KeyError, ValueError, TypeError, IndexError):  # taken whole
+            hit = any(x.any() for x in xs)
+            outs = [np.full(sh, hit) for sh in shapes]
+        for v, m in zip(e.outvars, outs, strict=True):
+            float_ = jnp.issubdtype(v.aval.dtype, jnp.inexact)
+            env[v] = m if float_ else np.zeros(np.shape(m), bool)
+    return [read(v) for v in jaxpr.outvars]
+
+
+def _tangent_masks(step, P, c0, nz_P: list, nz_c: list) -> tuple[tuple, tuple]:
+    """Float leaves of ``P`` and of the carry whose tangents can be nonzero.
+
+    ``nz_P``, ``nz_c`` flag the float leaves with nonzero input tangents. A
+    carry leaf is masked if its initial tangent is nonzero or a step makes it
+    depend on a masked leaf (a fixed point over the step's jaxpr): with the
+    gains differentiated, the reference attitude, the time and the status stay
+    out of the tangent program.
+    """
+    pl, pt = jax.tree.flatten(P)
+    cl, ct = jax.tree.flatten(c0)
+
+    def one_step(*leaves):
+        c1 = step(
+            jax.tree.unflatten(pt, leaves[: len(pl)]), jax.tree.unflatten(ct, leaves[len(pl) :])
+        )
+        return jax.tree.leaves(c1)
+
+    def expand(leaves, nz):  # float-leaf flags -> flags for every leaf
+        it = iter(nz)
+        return [next(it) if _is_float(x) else False for x in leaves]
+
+    dep_P, dep_c = expand(pl, nz_P), expand(cl, nz_c)
+    while True:
+        out = _depends(one_step, pl + cl, dep_P + dep_c)
+        new = [a or b for a, b in zip(dep_c, out, strict=True)]
+        if new == dep_c:
+            break
+        dep_c = new
+    mc = [d for d, x in zip(dep_c, cl, strict=True) if _is_float(x)]
+    return tuple(nz_P), tuple(mc)
+
+
 def _segment_blocks(n: int, target: int) -> int:
     """Blocks per segment: a divisor of ``n`` within 2x of ``target`` if there is one.
 
@@ -135,7 +276,7 @@ def checkpoint_length(n_steps: int) -> int:
 #: The layout each program takes when batched (see `_dual`): ``"auto"`` is the
 #: scalarized layout for batches of `so3jax._scalarize.CUT_MIN_BATCH` runs or more
 #: (fusion cuts on), the array layout below that.
-BATCHED_LAYOUT = {"run": "scalar", "tangent": "auto", "adjoint": "array"}
+BATCHED_LAYOUT = {"run": "scalar", "tangent": "auto", "jacobian": "auto", "adjoint": "array"}
 
 
 def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
@@ -235,33 +376,96 @@ class _Loop:
         return sc.join(ys, obs_struct, (self.n_save,)), cN
 
     # ---------------- tangent (forward mode) ----------------
+    #
+    # The tangent programs carry tangents for the masked float leaves only: ``mP``
+    # flags the parameters being differentiated, ``mc`` the carry leaves whose
+    # tangent can be nonzero (`_tangent_masks`). Every other leaf is held at its
+    # primal value, so no operation pays for a tangent that is known to be zero.
 
-    def _tstep(self, x):
+    def _tstep(self, mP, mc, x):
         P, c, dP, dc = x
+        pf, cf = _floats(P), _floats(c)
 
-        def g(Pf, cf):
-            c1 = self.step(_with_floats(P, Pf), _with_floats(c, cf))
-            return _floats(c1), c1
+        def g(Pm, cm):
+            Pp = _with_floats(P, _fill(mP, Pm, pf))
+            c1 = self.step(Pp, _with_floats(c, _fill(mc, cm, cf)))
+            return _pick(mc, _floats(c1)), c1
 
-        _, dc1, c1 = jax.jvp(g, (_floats(P), _floats(c)), (dP, dc), has_aux=True)
+        _, dc1, c1 = jax.jvp(g, (_pick(mP, pf), _pick(mc, cf)), (list(dP), list(dc)), has_aux=True)
         return P, c1, dP, dc1
 
-    def _tobs(self, x):
+    def _tobs(self, mP, mc, x):
         P, c, dP, dc = x
-        o = lambda Pf, cf: self.observe(_with_floats(P, Pf), _with_floats(c, cf))
-        return jax.jvp(o, (_floats(P), _floats(c)), (dP, dc))[1]
+        pf, cf = _floats(P), _floats(c)
 
-    def tan_array(self, P, c0, dP, dc0):
-        x, dys = self._save_loop(self._tstep, self._tobs, (P, c0, dP, dc0))
+        def o(Pm, cm):
+            Pp = _with_floats(P, _fill(mP, Pm, pf))
+            return self.observe(Pp, _with_floats(c, _fill(mc, cm, cf)))
+
+        return jax.jvp(o, (_pick(mP, pf), _pick(mc, cf)), (list(dP), list(dc)))[1]
+
+    def tan_array(self, mP, mc, P, c0, dP, dc0):
+        step = functools.partial(self._tstep, mP, mc)
+        x, dys = self._save_loop(step, functools.partial(self._tobs, mP, mc), (P, c0, dP, dc0))
         return dys, x[3]
 
-    def tan_scalar(self, P, c0, dP, dc0, cut=None):
+    def tan_scalar(self, mP, mc, P, c0, dP, dc0, cut=None):
         ex = (P, c0, dP, dc0)
-        body, _ = sc.flat_program(self._tstep, ex, cut)
-        tobs, tobs_struct = sc.flat_program(self._tobs, ex, cut)
+        body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut)
+        tobs, tobs_struct = sc.flat_program(functools.partial(self._tobs, mP, mc), ex, cut)
         flat, dys = self._save_loop(body, tobs, sc.split(ex))
         x = sc.join(flat, jax.eval_shape(lambda: ex))
         return sc.join(dys, tobs_struct, (self.n_save,)), x[3]
+
+    # ---------------- Jacobian (a few inputs: primal and columns in one pass) ----------------
+
+    def jac_array(self, mP, mc, P, c0, dP, dc0):
+        """The run and its Jacobian's columns in one pass, array layout.
+
+        ``dP``, ``dc0`` are the masked tangents with a leading axis of ``n``
+        columns; the primal is computed once and the ``n`` tangents are batched
+        over it. Returns ``(ys, cN, dys, dcN)`` with a column axis after the
+        saved-point axis of ``dys`` and in front of ``dcN``.
+        """
+        tstep, tobs = (functools.partial(f, mP, mc) for f in (self._tstep, self._tobs))
+        cols = lambda f, P, c, out_axes: jax.vmap(  # noqa: E731
+            lambda dP, dc: f((P, c, dP, dc)), out_axes=out_axes
+        )
+
+        def body(x):
+            P, c, dP, dc = x
+            return cols(tstep, P, c, (None, None, 0, 0))(dP, dc)
+
+        def observe(x):
+            P, c, dP, dc = x
+            return self.observe(P, c), cols(tobs, P, c, 0)(dP, dc)
+
+        x, (ys, dys) = self._save_loop(body, observe, (P, c0, dP, dc0))
+        return ys, x[1], dys, x[3]
+
+    def jac_scalar(self, mP, mc, P, c0, dP, dc0, cut=None):
+        """`jac_array` as a scalarized program: tangent components are ``(n,)`` arrays."""
+        one = jax.tree.map(lambda a: a[0], (dP, dc0))  # one column: the example
+        ex = (P, c0) + one
+        body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut)
+        tobs, tobs_struct = sc.flat_program(functools.partial(self._tobs, mP, mc), ex, cut)
+        obs, obs_struct = sc.flat_program(lambda x: self.observe(x[0], x[1]), ex, cut)
+        n_primal = len(sc.split((P, c0)))
+        n_tangent = sum(math.prod(jnp.shape(a)) for a in jax.tree.leaves(one))
+        axes = [None] * n_primal + [0] * n_tangent
+        vbody = jax.vmap(body, in_axes=(axes,), out_axes=axes)
+        vtobs = jax.vmap(tobs, in_axes=(axes,))
+
+        def observe(flat):
+            return obs(flat), vtobs(flat)
+
+        flat0 = sc.split((P, c0)) + jax.vmap(sc.split)((dP, dc0))
+        flat, (ys, dys) = self._save_loop(vbody, observe, flat0)
+        _, cN = sc.join(flat[:n_primal], jax.eval_shape(lambda: (P, c0)))
+        n = jnp.shape(jax.tree.leaves((dP, dc0))[0])[0]
+        _, dcN = sc.join(flat[n_primal:], jax.eval_shape(lambda: one), (n,))
+        ys = sc.join(ys, obs_struct, (self.n_save,))
+        return ys, cN, sc.join(dys, tobs_struct, (self.n_save, n)), dcN
 
     # ---------------- adjoint (reverse mode) ----------------
 
@@ -564,35 +768,9 @@ def run(
     return f(P, carry0)
 
 
-#: Reverse mode through at most this many differentiated scalars takes the
-#: Jacobian's columns from the tangent program, one run each, instead of the
-#: discrete adjoint (`_transpose_by_columns`).
+#: Through at most this many differentiated scalars the run computes its Jacobian
+#: with its value, in one pass (`_jacobian_jvp`), for forward and reverse mode alike.
 FORWARD_JACOBIAN_MAX = 8
-
-
-def _transpose_by_columns(linear: Callable, like: list, cts) -> list:
-    """``J^T cts`` for ``linear = J`` (inputs shaped like ``like``), one column at a time.
-
-    Each column is one run of the tangent program with a unit input (under
-    `jax.lax.map`, so the program compiles once); with a handful of inputs this
-    is cheaper than a backward pass: nothing is recomputed from checkpoints,
-    and a batch runs the scalarized tangent program.
-    """
-    ends = np.cumsum([math.prod(jnp.shape(x)) for x in like]).tolist()
-    ct_leaves = jax.tree.leaves(cts)
-
-    def unflatten(vec):  # a flat vector as arrays shaped and typed like ``like``
-        starts = [0] + ends[:-1]
-        return [
-            vec[a:b].reshape(jnp.shape(x)).astype(jnp.result_type(x))
-            for a, b, x in zip(starts, ends, like, strict=True)
-        ]
-
-    def column(unit):
-        col = jax.tree.leaves(linear(unflatten(unit)))
-        return sum(jnp.sum(c * d) for c, d in zip(ct_leaves, col, strict=True))
-
-    return unflatten(jax.lax.map(column, jnp.eye(ends[-1], dtype=jnp.result_type(*like))))
 
 
 def _autodiff_transpose(loop: _Loop, nz: list, P, c0, ct_ys, ct_cN) -> list:
@@ -616,15 +794,18 @@ def _autodiff_transpose(loop: _Loop, nz: list, P, c0, ct_ys, ct_cN) -> list:
 def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
     """The run with the engine's own tangent program and a custom reverse mode.
 
-    Forward mode is the tangent program (`_Loop.tan_array` / `_Loop.tan_scalar`).
-    Reverse mode, ``reverse="adjoint"``: the discrete adjoint (`_Loop.adj_array`
-    / `_Loop.adj_scalar`). ``reverse="auto"``: the Jacobian's columns from the
-    tangent program when at most `FORWARD_JACOBIAN_MAX` scalars are
-    differentiated (`_transpose_by_columns`), else JAX's transpose of the
-    checkpointed array program (`_autodiff_transpose`).
+    With ``reverse="auto"`` and at most `FORWARD_JACOBIAN_MAX` differentiated
+    scalars, the derivative is the Jacobian of the run, computed with its value
+    in one pass (`_Loop.jac_array` / `_Loop.jac_scalar`: the primal once, the
+    ``n`` unit tangents batched over it); the tangent is then the Jacobian times
+    the input tangent, which JAX transposes for reverse mode by itself. Through
+    more scalars, forward mode is the tangent program (`_Loop.tan_array` /
+    `_Loop.tan_scalar`) and reverse mode JAX's transpose of the checkpointed
+    array program (`_autodiff_transpose`). ``reverse="adjoint"``: the tangent
+    program and the discrete adjoint (`_Loop.adj_array` / `_Loop.adj_scalar`)
+    whatever the number of inputs.
     """
     fwd = _dual(loop.fwd_array, loop.fwd_scalar, "run")
-    tan = _dual(loop.tan_array, loop.tan_scalar, "tangent")
     adj = _dual(loop.adj_array, loop.adj_scalar, "adjoint")
 
     @jax.custom_jvp
@@ -633,45 +814,89 @@ def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
 
     def f_jvp(primals, tangents):
         P, c0 = primals
-        out = fwd(P, c0)
         dP, dc0 = tangents
         tl = _floats_with_zeros((dP, dc0), (P, c0))
         nz = [not isinstance(t, SymbolicZero) for t in tl]
         lin = [t for t, z in zip(tl, nz, strict=True) if z]
         pf, cf = _floats(P), _floats(c0)
-
-        def fill(lin):
-            full = _fill(nz, lin, [jnp.zeros_like(x) for x in pf + cf])
-            return full[: len(pf)], full[len(pf) :]
+        if not lin:
+            out = fwd(P, c0)
+            dys = jax.tree.map(jnp.zeros_like, out[0])
+            return out, (dys, _tangent_tree(out[1], [jnp.zeros_like(x) for x in _floats(out[1])]))
+        mP, mc = _tangent_masks(loop.step, P, c0, nz[: len(pf)], nz[len(pf) :])
+        n_lin = sum(math.prod(jnp.shape(x)) for x in lin)
+        if reverse == "auto" and n_lin <= FORWARD_JACOBIAN_MAX:
+            return _jacobian_jvp(loop, P, c0, nz, lin, mP, mc)
+        out = fwd(P, c0)
+        tan = _dual(
+            functools.partial(loop.tan_array, mP, mc),
+            functools.partial(loop.tan_scalar, mP, mc),
+            "tangent",
+        )
 
         def tangent(res, lin):
             P, c0 = res
-            dPf, dcf = fill(lin)
-            dys, dcN = tan(P, c0, dPf, dcf)
-            return dys, dcN
+            full = _fill(nz, lin, [None] * len(nz))
+            dP = _pick(mP, full[: len(pf)])
+            dc = [
+                jnp.zeros_like(x) if d is None else d
+                for x, d in zip(_pick(mc, cf), _pick(mc, full[len(pf) :]), strict=True)
+            ]
+            dys, dcN = tan(P, c0, dP, dc)
+            return dys, _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(out[1])])
 
         def transpose(res, cts):
             P, c0 = res
             ct_ys, ct_cN = cts
             if reverse == "auto":
-                if sum(math.prod(jnp.shape(x)) for x in lin) <= FORWARD_JACOBIAN_MAX:
-                    return _transpose_by_columns(
-                        lambda lin_t: tangent(res, lin_t), lin, (ct_ys, list(ct_cN))
-                    )
                 return _autodiff_transpose(loop, nz, P, c0, ct_ys, ct_cN)
             gP, gc = adj(P, c0, ct_ys, ct_cN)
             return [g for g, z in zip(list(gP) + list(gc), nz, strict=True) if z]
 
-        if not lin:
-            dys = jax.tree.map(jnp.zeros_like, out[0])
-            dcNf = [jnp.zeros_like(x) for x in _floats(out[1])]
-        else:
-            dys, dcNf = linear_call(tangent, transpose, (P, c0), lin)
-        dcN = _tangent_tree(out[1], dcNf)
-        return out, (dys, dcN)
+        dys, dcNf = linear_call(tangent, transpose, (P, c0), lin)
+        return out, (dys, _tangent_tree(out[1], dcNf))
 
     f.defjvp(f_jvp, symbolic_zeros=True)
     return f(P, carry0)
+
+
+def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple):
+    """The run's value and tangent from its Jacobian, computed in one pass.
+
+    ``lin`` (the nonzero input tangents, ``n`` scalars in all) is flattened into
+    a coefficient vector; the Jacobian program runs the unit tangents as ``n``
+    columns over one primal (no residuals, nothing recomputed), and the tangent
+    is each column scaled by its coefficient. Under ``jacfwd`` the columns are
+    computed once for every basis vector; under ``grad`` JAX transposes the
+    contraction. The same program runs scalarized under ``vmap`` of 32 runs or
+    more (`BATCHED_LAYOUT`).
+    """
+    pf, cf = _floats(P), _floats(c0)
+    sizes = [math.prod(jnp.shape(x)) for x in lin]
+    n = sum(sizes)
+    starts = np.cumsum([0] + sizes[:-1]).tolist()
+    cols = [
+        jnp.eye(n, dtype=jnp.result_type(x))[:, a : a + k].reshape((n,) + jnp.shape(x))
+        for x, a, k in zip(lin, starts, sizes, strict=True)
+    ]
+    full = _fill(nz, cols, [None] * len(nz))
+    dP = _pick(mP, full[: len(pf)])
+    dc = [
+        jnp.zeros((n,) + jnp.shape(x), jnp.result_type(x)) if d is None else d
+        for x, d in zip(_pick(mc, cf), _pick(mc, full[len(pf) :]), strict=True)
+    ]
+    jac = _dual(
+        functools.partial(loop.jac_array, mP, mc),
+        functools.partial(loop.jac_scalar, mP, mc),
+        "jacobian",
+    )
+    ys, cN, Jys, JcN = jac(P, c0, dP, dc)
+    coef = jnp.concatenate([jnp.ravel(x) for x in lin])
+
+    dys = jax.tree.map(lambda J: jnp.tensordot(coef.astype(J.dtype), J, axes=([0], [1])), Jys)
+    dcN = [jnp.tensordot(coef.astype(J.dtype), J, axes=1) for J in JcN]
+    dcNf = _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(cN)])
+    return (ys, cN), (dys, _tangent_tree(cN, dcNf))
 
 
 def _scalar_or_array(loop: _Loop) -> Callable:
