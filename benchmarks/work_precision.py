@@ -40,6 +40,8 @@ LIE = {
     "RKMK4": (s.RKMK4, [125, 250, 500, 1000, 2000, 4000, 8000]),
     "CF4": (s.CF4, [125, 250, 500, 1000, 2000, 4000, 8000]),
     "RKMK45": (s.RKMK45, [125, 250, 500, 1000, 2000, 4000]),
+    "RKMK4 Cayley": (lambda: s.RKMK4(coords="cayley"), [125, 250, 500, 1000, 2000, 4000, 8000]),
+    "RKMKTsit5 Cayley": (lambda: s.RKMKTsit5(coords="cayley"), [125, 250, 500, 1000, 2000, 4000]),
 }
 AMBIENT_FIXED = {"diffrax RK4": ("rk4", [125, 250, 500, 1000, 2000, 4000, 8000])}
 AMBIENT_ADAPTIVE = {

@@ -7,27 +7,32 @@ is, with no flag for the user to know:
 
 - **a single run** executes the array program: ``lax.scan`` over the step as
   written (3-vectors and 3x3 matrices), the fastest layout for one trajectory;
-- **a batch under ``vmap``** executes the scalarized program
-  (`so3jax._scalarize`): every scalar component of the carry is its own
-  contiguous ``(B,)`` array and a step is a few hundred small elementwise
-  kernels (a structure-of-arrays layout). The switch is a
+- **a batch under ``vmap``** of 32 runs or more executes the scalarized
+  program (`so3jax._scalarize`): every scalar component of the carry is its
+  own contiguous ``(B,)`` array and a step is a few hundred small elementwise
+  kernels (a structure-of-arrays layout); a smaller batch runs the array
+  program, vmapped (faster there: `BATCHED_LAYOUT`). The switch is a
   `jax.custom_batching.custom_vmap` rule, so nested ``vmap`` (gains x
-  attitudes) and ``vmap`` inside ``jit`` take it. On CPU the rule also hands
-  the program an unbatched index (`so3jax._scalarize.cut_index`) with which it
-  cuts fusion where XLA would recompute shared values once per consumer
-  (`so3jax._scalarize.fusion_cut`);
-- **a differentiated run** hangs its derivatives on one ``jax.custom_jvp``
-  whose tangent is a `jax.custom_derivatives.linear_call`. Forward mode
-  (``jvp``, ``jacfwd``) runs the engine's tangent program, a scan of
-  ``jax.jvp`` of one step, scalarized for batches of 32 runs or more. Reverse
-  mode (``grad``) through at most `FORWARD_JACOBIAN_MAX` differentiated
-  scalars (two gains, six per-axis gains) takes the Jacobian's columns from
-  that tangent program, one run each, and contracts them with the
-  cotangents: its memory does not grow with the horizon beyond the saved
-  points. Through more scalars it is JAX's transpose of the *checkpointed*
-  array program (segments of about ``sqrt(n_steps)`` steps under
-  `jax.checkpoint`), whose memory grows like ``sqrt(n_steps)``. The value of a
-  differentiated batch still comes from the scalarized program.
+  attitudes) and ``vmap`` inside ``jit`` take it. On CPU, from 64 runs on, the
+  rule also hands the program an unbatched index
+  (`so3jax._scalarize.cut_index`) with which it cuts fusion where XLA would
+  recompute shared values once per consumer (`so3jax._scalarize.fusion_cut`);
+- **a differentiated run** hangs its derivatives on one ``jax.custom_jvp``.
+  Through at most `FORWARD_JACOBIAN_MAX` differentiated scalars (two gains,
+  six per-axis gains, gains and initial rates) the run computes its value and
+  its Jacobian in **one pass**: the primal once, the unit tangents batched over
+  it as columns (`_Loop.jac_array` / `_Loop.jac_scalar`, scalarized for
+  batches of 32 runs or more). The tangent is that Jacobian times the input
+  tangent: ``jacfwd`` reads the columns, and ``grad`` is JAX's transpose of
+  the contraction, with nothing stored per step beyond the saved points and
+  nothing recomputed. Through more scalars the tangent is a
+  `jax.custom_derivatives.linear_call`: forward mode runs the engine's
+  tangent program (a scan of ``jax.jvp`` of one step, scalarized for 32 runs
+  or more), reverse mode is JAX's transpose of the *checkpointed* array
+  program (segments of about ``sqrt(n_steps)`` steps under `jax.checkpoint`),
+  whose memory grows like ``sqrt(n_steps)``. The tangent programs carry
+  tangents only for the leaves that can have one (`_tangent_masks`: with the
+  gains differentiated, the reference attitude, time and status stay out).
   ``program="autodiff"`` is JAX's own derivative of the checkpointed array
   program throughout (the reference).
 
@@ -37,10 +42,10 @@ one step and its observation, with the states recomputed from checkpoints every
 ``K ~ sqrt(n_steps)`` steps), exact to round-off against plain autodiff. JAX ships
 no batching rule for ``linear_call``; `_register_linear_call_batching` adds one,
 so ``vmap(grad(...))`` and ``jacfwd`` work through it. Both derivative programs
-exist in the scalarized layout too (`BATCHED_LAYOUT`). The tangent program takes
-it for batches of 32 runs or more, where (with fusion cuts) ``jacfwd`` of the mean
-cost over 256 seed starts ran about 5x faster than JAX's ``jvp`` of the array
-program. The adjoint stays in the array layout:
+exist in the scalarized layout too (`BATCHED_LAYOUT`). The tangent and Jacobian
+programs take it for batches of 32 runs or more, with fusion cuts (``jacfwd`` of the
+mean cost over 256 seed starts: 7.5x faster than JAX's ``jvp`` of the array
+program). The adjoint stays in the array layout:
 XLA on CPU takes minutes to compile the scalarized one (the scalarized adjoint
 step of the seed has about 9400 scalar operations: 24 s to compile unbatched,
 100 s under ``vmap``, against about 3 s for the forward step). See
@@ -51,7 +56,8 @@ primitive the scalarizer does not handle (a loop, dynamic indexing) runs the
 array program in every case, with a warning.
 
 References: A. Griewank, A. Walther, *Evaluating Derivatives*, SIAM 2008
-(discrete adjoints, ch. 3; checkpointing, ch. 12); JAX's ``linear_call``
+(the vector forward mode of the one-pass Jacobian and discrete adjoints, ch. 3;
+checkpointing, ch. 12); JAX's ``linear_call``
 docstring (a linear function with a custom transpose).
 """
 
@@ -154,6 +160,14 @@ _SHAPE_OPS = {
 }
 
 
+#: Primitives that call a jaxpr once with their operands (walked inside). Loops and
+#: conditionals are not among them: a loop's body walked once would miss what a
+#: later iteration makes depend, so they are taken whole.
+_CALLS = frozenset(
+    "pjit jit closed_call core_call custom_jvp_call custom_vjp_call remat checkpoint".split()
+)
+
+
 def _dot_mask(lhs, rhs, dimension_numbers) -> np.ndarray:
     """The mask of ``dot_general(lhs, rhs)``: an entry depends on what it sums."""
     (cl, cr), (bl, br) = dimension_numbers
@@ -201,7 +215,7 @@ def _mask_eval(jaxpr, ins: list) -> list:
             elif name in sc._ELEMENTWISE:
                 ys = xs[1:] if name == "select_n" else xs
                 outs = [np.logical_or.reduce([np.broadcast_to(y, shapes[0]) for y in ys])]
-            elif isinstance(inner, jex_core.Jaxpr) and len(inner.invars) == len(xs):
+            elif name in _CALLS and isinstance(inner, jex_core.Jaxpr):
                 outs = _mask_eval(inner, xs)
             else:
                 raise KeyError(name)
@@ -273,10 +287,22 @@ def checkpoint_length(n_steps: int) -> int:
 # --------------------------------------------------------------------------
 
 
-#: The layout each program takes when batched (see `_dual`): ``"auto"`` is the
-#: scalarized layout for batches of `so3jax._scalarize.CUT_MIN_BATCH` runs or more
-#: (fusion cuts on), the array layout below that.
-BATCHED_LAYOUT = {"run": "scalar", "tangent": "auto", "jacobian": "auto", "adjoint": "array"}
+#: How each program runs under ``vmap`` (see `_dual`), by batch size: ``(s, c)`` runs
+#: the scalarized program for batches of ``s`` runs or more (the array program, vmapped,
+#: below that) and cuts its fusion (`so3jax._scalarize.fusion_cut`, CPU only) from ``c``
+#: runs on; ``None`` never. Measured on the 2-core CPU (seed, RKMK4, `expected_cost`,
+#: 1000 steps, 2026-11-24): the forward run took 5.9 / 15.0 / 27.6 ms (array / scalarized
+#: / scalarized with cuts) for 4 runs, 14.8 / 19.4 / 29.7 ms for 16, 24.6 / 23.8 / 31.6
+#: for 32, 48 / 37 / 39 for 64 and 116 / 101 / 50 for 128. The tangent and Jacobian
+#: programs need the cuts from 32 runs on (uncut they ran 2 to 3x slower than the array
+#: layout). ``"scalar"`` is ``program="scalar"`` (benchmarks).
+BATCHED_LAYOUT = {
+    "run": (32, 64),
+    "scalar": (1, 64),
+    "tangent": (32, 32),
+    "jacobian": (32, 32),
+    "adjoint": (None, None),
+}
 
 
 def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
@@ -292,15 +318,12 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
     @fn.def_vmap
     def _rule(axis_size, in_batched, *args):
         axes = tuple(jax.tree.map(lambda b: 0 if b else None, ib) for ib in in_batched)
-        large = axis_size >= sc.CUT_MIN_BATCH  # fusion cuts pay from here on
-        layout = BATCHED_LAYOUT[what]
-        if layout == "auto":
-            layout = "scalar" if large else "array"
-        if layout == "array":
+        scalar_from, cut_from = BATCHED_LAYOUT[what]
+        if scalar_from is None or axis_size < scalar_from:
             out = jax.vmap(array_fn, in_axes=axes)(*args)
             return out, jax.tree.map(lambda _: True, out)
         try:
-            index = sc.cut_index(args) if large else None
+            index = sc.cut_index(args) if axis_size >= cut_from else None
             cut = functools.partial(scalar_fn, cut=index)
             out = jax.vmap(cut, in_axes=axes)(*args)
         except sc.ScalarizeError:
@@ -739,7 +762,7 @@ def run(
     if program == "array":
         fwd = loop.fwd_array
     elif program == "scalar":
-        fwd = _dual(_scalar_or_array(loop), loop.fwd_scalar, "run")
+        fwd = _dual(_scalar_or_array(loop), loop.fwd_scalar, "scalar")
     else:
         fwd = _dual(loop.fwd_array, loop.fwd_scalar, "run")
 

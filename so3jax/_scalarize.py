@@ -473,12 +473,6 @@ def fusion_cut(values: list, index) -> list:
     return jax.lax.switch(index, (ident, ident, never), list(values))
 
 
-#: Batches smaller than this run without cuts: with 16 runs the extra kernels and
-#: conditionals cost more (14.7 against 9.2 ms for `expected_cost`, 1000 steps) than
-#: the duplicated arithmetic; from 32 runs on the cuts win (16 against 25 ms).
-CUT_MIN_BATCH = 32
-
-
 @custom_vmap
 def _probe(xs):
     total = functools.reduce(lambda a, b: a + b.astype(a.dtype), [jnp.ravel(x)[0] for x in xs])

@@ -11,7 +11,7 @@ from exact_rigid_body import ExactFreeBody, ambient_reference
 from scipy.spatial.transform import Rotation
 
 import so3jax
-from so3jax import LieState, RigidBody
+from so3jax import LieState, RigidBody, _engine
 from so3jax.scenes import MechanicalScene
 
 MOMENTS = np.array([1.0, 1.5, 2.2])
@@ -400,8 +400,10 @@ def test_batched_runs_share_the_reference_attitude():
 
     sc = so3jax.scenes.seed()
     method, dt, n = so3jax.RKMK4(), 0.01, 8
-    R0, W0 = so3jax.initial_states(0, 3)
-    k = jnp.array([2.0, 4.0, 8.0])
+    # batches large enough for the scalarized program (smaller ones run the array program)
+    B = _engine.BATCHED_LAYOUT["run"][0]
+    R0, W0 = so3jax.initial_states(0, B)
+    k = jnp.linspace(2.0, 8.0, B)
 
     def starts(R, W):  # a batch of starts (what sweep and expected_cost run)
         sc1, R1 = with_start(sc, R, W)
@@ -415,7 +417,8 @@ def test_batched_runs_share_the_reference_attitude():
         flat = max(carries, key=len)  # the scalarized step loop: one carry per component
         unbatched = [a for a in flat if a.shape == () and jnp.issubdtype(a.dtype, jnp.floating)]
         assert len(unbatched) >= 9, [a.str_short() for a in flat]  # Rd's 9 components
-    # ... and the numbers are those of runs one at a time.
+    # ... and the numbers are those of runs one at a time (a small batch: array program).
+    R0, W0 = R0[:3], W0[:3]
     batch = jax.vmap(starts)(R0, W0)
     for b in range(3):
         one = so3jax.simulate(with_initial_state(sc, R0[b], W0[b]), method, dt, n).R
