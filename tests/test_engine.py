@@ -124,7 +124,7 @@ def test_rollout_cost_gradient(program):
 
 def test_float32_gradients():
     f64 = jax.grad(_free_body_cost("autodiff", s.CF4()))(X0)
-    for program in ("adjoint",):  # "auto" is JAX's own autodiff (covered above)
+    for program in ("adjoint", "auto"):  # "auto": the one-pass Jacobian (6 scalars)
         x = X0.astype(jnp.float32)
         g = jax.grad(_free_body_cost(program, s.CF4()))(x)
         assert g.dtype == jnp.float32
