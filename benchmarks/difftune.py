@@ -54,24 +54,27 @@ def main():
         return value, grad
 
     # One forward pass and one iteration's value-and-gradient, each compiled once.
+    # --quick skips reverse mode (a 10 s compile; tests/test_quadrotor.py checks its gradient).
     timings, grads = {}, {}
-    for name, fn in (
-        ("forward pass", loss),
-        ("value and gradient, reverse mode", jax.value_and_grad(loss)),
-        ("value and gradient, forward mode", forward_mode),
-    ):
+    variants = [("forward pass", loss)]
+    if not args.quick:
+        variants.append(("value and gradient, reverse mode", jax.value_and_grad(loss)))
+    variants.append(("value and gradient, forward mode", forward_mode))
+    for name, fn in variants:
         r = C.compile_and_time(fn, scene.gains, repeats=args.repeats)
         timings[name] = {"run_s": r["run_s"], "compile_s": r["compile_s"]}
         grads[name] = r["out"][1] if name.startswith("value and gradient") else None
     base = timings["forward pass"]["run_s"]
-    g_rev, g_fwd = (
-        jax.tree.leaves(grads[f"value and gradient, {m} mode"]) for m in ("reverse", "forward")
-    )
-    scale = max(float(jnp.max(jnp.abs(a))) for a in g_rev)
-    grad_agree = (
-        max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(g_fwd, g_rev, strict=True)) / scale
-    )
-    print(f"forward and reverse gradients agree to {grad_agree:.1e} (relative)")
+    grad_agree = None
+    if not args.quick:
+        g_rev, g_fwd = (
+            jax.tree.leaves(grads[f"value and gradient, {m} mode"]) for m in ("reverse", "forward")
+        )
+        scale = max(float(jnp.max(jnp.abs(a))) for a in g_rev)
+        grad_agree = (
+            max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(g_fwd, g_rev, strict=True)) / scale
+        )
+        print(f"forward and reverse gradients agree to {grad_agree:.1e} (relative)")
     C.print_table(
         [
             {

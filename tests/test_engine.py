@@ -87,11 +87,14 @@ X0 = jnp.array([1.0, 2.0, 3.5, 0.4, -0.2, 0.9])
 
 
 @pytest.mark.parametrize("method", METHODS, ids=lambda m: f"{m.name}-{getattr(m, 'coords', '')}")
-def test_adjoint_equals_autodiff(method):
-    """The engine's discrete adjoint against JAX's autodiff, every method, exp and Cayley."""
+def test_gradients_equal_autodiff(method):
+    """The default gradient (one-pass Jacobian, 6 scalars) and the discrete adjoint against
+    JAX's autodiff, every method, exp and Cayley (RKMK45's adjoint, the slowest program to
+    compile, shares its code with RKMK4's)."""
     ref = jax.grad(_free_body_cost("autodiff", method))(X0)
-    g = jax.grad(_free_body_cost("adjoint", method))(X0)
-    assert _rel(g, ref) < 1e-10
+    assert _rel(jax.grad(_free_body_cost("auto", method))(X0), ref) < 1e-10
+    if method.name != "RKMK45":
+        assert _rel(jax.grad(_free_body_cost("adjoint", method))(X0), ref) < 1e-10
 
 
 # The seed-scene tests use the one-stage method: the controller, reference and cost are
@@ -107,7 +110,7 @@ def test_adjoint_and_tangent_on_the_seed():
     assert _rel(jax.jacfwd(_traj_cost("adjoint", SEED_METHOD))(K0), ref) < 1e-10
 
 
-@pytest.mark.parametrize("program", ["adjoint"])
+@pytest.mark.parametrize("program", ["auto"])
 def test_gradients_match_finite_differences(program):
     f = _traj_cost(program, SEED_METHOD, save_every=3)
     g = jax.grad(f)(K0)
@@ -202,12 +205,11 @@ def test_freeze_on_failure_under_every_transform():
 
     ks = jnp.array([[3.0, 1.5], [3.0, 1e5]])  # the second is far past the stable step
     ref = jax.grad(lambda k: cost(k, "autodiff")[0])(ks[0])
-    for program in ("adjoint", "auto"):
-        vg = jax.value_and_grad(lambda k, p=program: cost(k, p), has_aux=True)
-        (c, code), g = jax.vmap(vg)(ks)
-        assert int(code[0]) == 0 and int(code[1]) != 0
-        assert np.isfinite(np.asarray(c[0]))
-        assert _rel(g[0], ref) < 1e-10 and np.all(np.isfinite(np.asarray(g[0])))
+    vg = jax.value_and_grad(lambda k: cost(k, "auto"), has_aux=True)
+    (c, code), g = jax.vmap(vg)(ks)
+    assert int(code[0]) == 0 and int(code[1]) != 0
+    assert np.isfinite(np.asarray(c[0]))
+    assert _rel(g[0], ref) < 1e-10 and np.all(np.isfinite(np.asarray(g[0])))
 
 
 def test_bad_program_is_rejected():
