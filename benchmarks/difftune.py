@@ -17,7 +17,7 @@ pass, and the wall time of the 100 iterations (compilation included and not).
 Writes ``results/difftune[-quick].json`` and ``.png``.
 
     python benchmarks/difftune.py            # the full example
-    python benchmarks/difftune.py --quick    # 2 s horizon, 10 iterations
+    python benchmarks/difftune.py --quick    # 2 s horizon, 10 iterations, forward mode only
 """
 
 from __future__ import annotations
