@@ -85,15 +85,18 @@ def _free_body_cost(program, method):
 
 X0 = jnp.array([1.0, 2.0, 3.5, 0.4, -0.2, 0.9])
 
+#: Methods whose discrete adjoint is checked: RKMK, commutator-free, variational.
+ADJOINT_CHECKED = (type(s.RKMK4()), type(s.CF4()), type(s.LGVI()))
+
 
 @pytest.mark.parametrize("method", METHODS, ids=lambda m: f"{m.name}-{getattr(m, 'coords', '')}")
 def test_gradients_equal_autodiff(method):
-    """The default gradient (one-pass Jacobian, 6 scalars) and the discrete adjoint against
-    JAX's autodiff, every method, exp and Cayley (RKMK45's adjoint, the slowest program to
-    compile, shares its code with RKMK4's)."""
+    """The default gradient (one-pass Jacobian, 6 scalars) against JAX's autodiff, every
+    method, exp and Cayley; the discrete adjoint for one method of each family (the others
+    share its code: the suite's time goes to compiling these programs)."""
     ref = jax.grad(_free_body_cost("autodiff", method))(X0)
     assert _rel(jax.grad(_free_body_cost("auto", method))(X0), ref) < 1e-10
-    if method.name != "RKMK45":
+    if type(method) in ADJOINT_CHECKED and getattr(method, "coords", "exp") == "exp":
         assert _rel(jax.grad(_free_body_cost("adjoint", method))(X0), ref) < 1e-10
 
 
@@ -103,11 +106,11 @@ def test_gradients_equal_autodiff(method):
 SEED_METHOD = s.LieEuler()
 
 
-def test_adjoint_and_tangent_on_the_seed():
-    """The seed (gains, controller, reference): the adjoint and forward mode equal autodiff."""
+def test_adjoint_on_the_seed():
+    """The seed (gains, controller, reference): the discrete adjoint equals autodiff (the
+    tangent program is checked through 12 gains in tests/test_quadrotor.py)."""
     ref = jax.grad(_traj_cost("autodiff", SEED_METHOD))(K0)
     assert _rel(jax.grad(_traj_cost("adjoint", SEED_METHOD))(K0), ref) < 1e-10
-    assert _rel(jax.jacfwd(_traj_cost("adjoint", SEED_METHOD))(K0), ref) < 1e-10
 
 
 @pytest.mark.parametrize("program", ["auto"])
@@ -241,13 +244,14 @@ def test_scalarized_tangent_program_for_large_batches():
 def test_one_pass_jacobian_through_gains_and_initial_rates():
     """A few inputs (2 gains + 3 initial rates): value and derivatives from one pass.
 
-    The value equals the plain forward run, ``grad`` and per-run ``vmap(grad)``
-    equal JAX's autodiff of the array program (``jacfwd`` through the same program:
-    `test_vmap_of_grad_equals_loop_of_grads`), and the tangent program leaves the
-    reference attitude out (it does not depend on the gains).
+    The value equals the plain forward run, ``grad`` equals JAX's autodiff of the
+    array program (``jacfwd`` and ``vmap(grad)`` through the same program:
+    `test_vmap_of_grad_equals_loop_of_grads`, `test_freeze_on_failure_under_every_transform`),
+    and the tangent program leaves the reference attitude out (it does not depend on the
+    gains).
     """
     sc0 = _seed()
-    R0 = s.random_rotation(jax.random.PRNGKey(5), (2,))
+    R0 = s.random_rotation(jax.random.PRNGKey(5), (1,))
 
     def cost(x, R, program="auto"):
         sc, R1 = with_start(with_gains(sc0, x[0], x[1]), R, x[2:])
@@ -270,10 +274,8 @@ def test_one_pass_jacobian_through_gains_and_initial_rates():
         _engine._tangent_masks = masks
     # carry float leaves: body attitude, reference attitude, rates and memory
     assert seen and seen[0][1] == (True, False, True)
-    refs = jax.vmap(jax.grad(lambda x, R: cost(x, R, "autodiff")), in_axes=(None, 0))(x, R0)
     np.testing.assert_allclose(v, cost(x, R0[0]), rtol=1e-14)
-    assert _rel(g, refs[0]) < 1e-10
-    assert _rel(jax.vmap(jax.grad(cost), in_axes=(None, 0))(x, R0), refs) < 1e-10
+    assert _rel(g, jax.grad(cost)(x, R0[0], "autodiff")) < 1e-10
 
 
 def test_dependence_walk():
