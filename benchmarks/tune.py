@@ -6,14 +6,15 @@ engine (`so3jax._engine`):
 
 - forward pass: the default program (scalarized under `vmap`), the baseline;
 - forward pass, array program (``program="array"``);
-- reverse (default): with two gains, the Jacobian's two columns from the engine's
-  tangent program (scalarized for 32 runs or more), contracted with the cotangent;
+- reverse (default): with two gains, the engine's one-pass Jacobian (the primal once,
+  the two unit tangents batched over it; scalarized for 32 runs or more), whose
+  contraction with the input tangent JAX transposes;
 - reverse, checkpointed: JAX's transpose of the checkpointed array program
   (``program="autodiff"``, memory ~ sqrt(n); the default before S19);
 - reverse, discrete adjoint: the engine's own backward scan of ``jax.vjp`` of
   one step from checkpoints (``program="adjoint"``);
 - reverse, no checkpoints (JAX's transpose, memory ~ n);
-- forward mode (default, `jax.jacfwd`, 2 tangents): the engine's tangent program;
+- forward mode (default, `jax.jacfwd`, 2 tangents): the same one-pass Jacobian;
 - forward mode, JAX's ``jvp`` of the checkpointed array program
   (``program="autodiff"``; the default before S19).
 
