@@ -119,6 +119,22 @@ def _pick(mask, xs) -> list:
     return [x for m, x in zip(mask, xs, strict=True) if m]
 
 
+def _masked_tangents(nz, xs, mP, mc, pf, cf, lead=()) -> tuple[list, list]:
+    """The tangents a masked tangent program takes: ``(dP, dc)``.
+
+    ``xs`` are the nonzero input tangents (the float leaves flagged in ``nz``,
+    parameters ``pf`` first, then carry ``cf``), each with leading shape
+    ``lead``. A masked carry leaf without an input tangent starts at zero.
+    """
+    full = _fill(nz, xs, [None] * len(nz))
+    dP = _pick(mP, full[: len(pf)])
+    dc = [
+        jnp.zeros(tuple(lead) + jnp.shape(x), jnp.result_type(x)) if d is None else d
+        for x, d in zip(_pick(mc, cf), _pick(mc, full[len(pf) :]), strict=True)
+    ]
+    return dP, dc
+
+
 def _depends(fn, args: list, dep: list) -> list:
     """Which outputs of ``fn(*args)`` can have a tangent from the arguments flagged in ``dep``.
 
@@ -130,10 +146,19 @@ def _depends(fn, args: list, dep: list) -> list:
     between states by a flag computed from all of them). Unknown primitives
     are taken whole, which can only over-approximate.
     """
+    return _jaxpr_depends(_abstract_jaxpr(fn, args), args, dep)
+
+
+def _abstract_jaxpr(fn, args: list):
+    """``fn``'s jaxpr at the shapes and dtypes of ``args`` (traced once, nothing runs)."""
     spec = [jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)) for a in args]
-    closed = jax.make_jaxpr(fn)(*spec)
+    return jax.make_jaxpr(fn)(*spec).jaxpr
+
+
+def _jaxpr_depends(jaxpr, args: list, dep: list) -> list:
+    """`_depends` on an already traced jaxpr of ``fn(*args)``."""
     ins = [np.full(jnp.shape(a), bool(d)) for a, d in zip(args, dep, strict=True)]
-    return [bool(m.any()) for m in _mask_eval(closed.jaxpr, ins)]
+    return [bool(m.any()) for m in _mask_eval(jaxpr, ins)]
 
 
 _SHAPE_OPS = {
@@ -252,8 +277,9 @@ def _tangent_masks(step, P, c0, nz_P: list, nz_c: list) -> tuple[tuple, tuple]:
         return [next(it) if _is_float(x) else False for x in leaves]
 
     dep_P, dep_c = expand(pl, nz_P), expand(cl, nz_c)
+    jaxpr = _abstract_jaxpr(one_step, pl + cl)  # traced once for the whole fixed point
     while True:
-        out = _depends(one_step, pl + cl, dep_P + dep_c)
+        out = _jaxpr_depends(jaxpr, pl + cl, dep_P + dep_c)
         new = [a or b for a, b in zip(dep_c, out, strict=True)]
         if new == dep_c:
             break
@@ -859,13 +885,7 @@ def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
 
         def tangent(res, lin):
             P, c0 = res
-            full = _fill(nz, lin, [None] * len(nz))
-            dP = _pick(mP, full[: len(pf)])
-            dc = [
-                jnp.zeros_like(x) if d is None else d
-                for x, d in zip(_pick(mc, cf), _pick(mc, full[len(pf) :]), strict=True)
-            ]
-            dys, dcN = tan(P, c0, dP, dc)
+            dys, dcN = tan(P, c0, *_masked_tangents(nz, lin, mP, mc, pf, cf))
             return dys, _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(out[1])])
 
         def transpose(res, cts):
@@ -902,12 +922,7 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple)
         jnp.eye(n, dtype=jnp.result_type(x))[:, a : a + k].reshape((n,) + jnp.shape(x))
         for x, a, k in zip(lin, starts, sizes, strict=True)
     ]
-    full = _fill(nz, cols, [None] * len(nz))
-    dP = _pick(mP, full[: len(pf)])
-    dc = [
-        jnp.zeros((n,) + jnp.shape(x), jnp.result_type(x)) if d is None else d
-        for x, d in zip(_pick(mc, cf), _pick(mc, full[len(pf) :]), strict=True)
-    ]
+    dP, dc = _masked_tangents(nz, cols, mP, mc, pf, cf, (n,))
     jac = _dual(
         functools.partial(loop.jac_array, mP, mc),
         functools.partial(loop.jac_scalar, mP, mc),
