@@ -876,7 +876,7 @@ def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
         n_lin = sum(math.prod(jnp.shape(x)) for x in lin)
         if reverse == "auto" and n_lin <= FORWARD_JACOBIAN_MAX:
             return _jacobian_jvp(loop, P, c0, nz, lin, mP, mc)
-        out = fwd(P, c0)
+        out = _bound_whole(fwd)(P, c0)
         tan = _dual(
             functools.partial(loop.tan_array, mP, mc),
             functools.partial(loop.tan_scalar, mP, mc),
@@ -928,13 +928,32 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple)
         functools.partial(loop.jac_scalar, mP, mc),
         "jacobian",
     )
-    ys, cN, Jys, JcN = jac(P, c0, dP, dc)
+    ys, cN, Jys, JcN = _bound_whole(jac)(P, c0, dP, dc)
     coef = jnp.concatenate([jnp.ravel(x) for x in lin])
 
     dys = jax.tree.map(lambda J: jnp.tensordot(coef.astype(J.dtype), J, axes=([0], [1])), Jys)
     dcN = [jnp.tensordot(coef.astype(J.dtype), J, axes=1) for J in JcN]
     dcNf = _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(cN)])
     return (ys, cN), (dys, _tangent_tree(cN, dcNf))
+
+
+def _bound_whole(fn: Callable) -> Callable:
+    """``fn`` behind a ``custom_jvp`` whose rule is JAX's own ``jvp`` of ``fn``.
+
+    The same function to every transform, except one: when ``grad`` linearizes
+    the engine's ``custom_jvp`` rule, JAX runs that rule under its partial
+    evaluator, whose ``scan`` and ``cond`` rules partially evaluate a loop even
+    when all its inputs are known. The programs the rule runs on primals (the
+    Jacobian program, the forward run) have only known inputs, but under
+    ``vmap`` their scalarized loop bodies were partially evaluated anyway, and
+    their fusion cuts hoisted out of the loop: the gradient of the mean cost
+    over 256 seed starts lowered in 5.7 s against 3.3 s now, and compiled in
+    11.2 s against 8.3 s. A ``custom_jvp`` call whose inputs are all known is
+    bound whole (``JaxprTrace.process_custom_jvp_call``).
+    """
+    g = jax.custom_jvp(fn)
+    g.defjvp(lambda primals, tangents: jax.jvp(fn, primals, tangents))
+    return g
 
 
 def _scalar_or_array(loop: _Loop) -> Callable:
