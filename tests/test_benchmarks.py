@@ -99,6 +99,7 @@ def test_adaptive_quick(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.filterwarnings("ignore:dt = .* is beyond the stability limit")  # the script's sweep
 def test_sweep_and_tune_quick(tmp_path):
     sweep = _run("sweep.py", tmp_path, repeats=False)
     assert {r["dtype"] for r in sweep["rows"]} == {"float64", "float32"}
