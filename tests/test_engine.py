@@ -77,7 +77,8 @@ FB_SAVES = 7
 
 def _free_body_cost(program, method):
     """A cost of a free body's run in its step size (a parameter) and its initial rates
-    (a carry leaf): 4 scalars, so the default gradient is the one-pass Jacobian."""
+    (a carry leaf). The engine sees 7 differentiated scalars (the rates reach it twice: in
+    the scene and in the carry), so the default gradient is the one-pass Jacobian."""
     R0 = s.from_axis_angle(jnp.array([0.3, -0.5, 0.8]), 1.1)
     J = jnp.diag(jnp.array([1.0, 2.0, 2.5]))
 
@@ -97,8 +98,8 @@ ADJOINT_CHECKED = (type(s.RKMK4()), type(s.CF4()), type(s.LGVI()))
 
 @pytest.mark.parametrize("method", METHODS, ids=lambda m: f"{m.name}-{getattr(m, 'coords', '')}")
 def test_gradients_equal_autodiff(method, monkeypatch):
-    """The default gradient (the one-pass Jacobian through 4 scalars: the step size and
-    the initial rates) against JAX's autodiff, every method, exp and Cayley; the discrete
+    """The default gradient (the one-pass Jacobian through the step size and the initial
+    rates) against JAX's autodiff, every method, exp and Cayley; the discrete
     adjoint for one method of each family (the others share its code: the suite's time
     goes to compiling these programs)."""
     calls = []
@@ -146,7 +147,7 @@ def test_rollout_cost_gradient(program):
 
 def test_float32_gradients():
     f64 = jax.grad(_free_body_cost("autodiff", s.CF4()))(X0)
-    for program in ("adjoint", "auto"):  # "auto": the one-pass Jacobian (6 scalars)
+    for program in ("adjoint", "auto"):  # "auto": the one-pass Jacobian
         x = X0.astype(jnp.float32)
         g = jax.grad(_free_body_cost(program, s.CF4()))(x)
         assert g.dtype == jnp.float32
@@ -257,7 +258,7 @@ def test_scalarized_tangent_program_for_large_batches():
     assert _rel(f(K0), jax.grad(cost("autodiff"))(K0)) < 1e-10
 
 
-def test_one_pass_jacobian_through_gains_and_initial_rates():
+def test_one_pass_jacobian_through_gains_and_initial_rates(monkeypatch):
     """A few inputs (2 gains + 3 initial rates): value and derivatives from one pass.
 
     The value equals the plain forward run, ``grad`` equals JAX's autodiff of the
@@ -283,11 +284,9 @@ def test_one_pass_jacobian_through_gains_and_initial_rates():
         seen.append(masks(*args))
         return seen[-1]
 
-    _engine._tangent_masks = spy
-    try:
-        v, g = jax.value_and_grad(cost)(x, R0[0])
-    finally:
-        _engine._tangent_masks = masks
+    monkeypatch.setattr(_engine, "_tangent_masks", spy)
+    v, g = jax.value_and_grad(cost)(x, R0[0])
+    monkeypatch.undo()
     # carry float leaves: body attitude, reference attitude, rates and memory
     assert seen and seen[0][1] == (True, False, True)
     np.testing.assert_allclose(v, cost(x, R0[0]), rtol=1e-14)
