@@ -52,6 +52,14 @@ class Scene(eqx.Module):
         """
         return y
 
+    def restarted(self, R0: Array) -> Scene:
+        """The scene with what depends on the body's initial attitude recomputed for ``R0``.
+
+        ``y0.R`` itself is left alone (`simulate` places ``R0``). Identity by
+        default; a tracking scene re-initialises its controller's memory.
+        """
+        return self
+
     def for_step(self, dt: Array, t0: Array) -> Scene:
         """The scene to integrate with fixed steps of ``dt`` from ``t0`` (itself by default).
 

@@ -125,6 +125,12 @@ class Tracking(MechanicalScene):
     def extra_rhs(self, t, y):
         return jnp.zeros_like(y.x[..., 3:])
 
+    def restarted(self, R0):
+        if not self.controller.memory_size:
+            return self
+        memory = self.controller.init_memory(R0, self.y0.R[1]).astype(self.y0.x.dtype)
+        return eqx.tree_at(lambda s: s.y0.x, self, self.y0.x.at[3:].set(memory))
+
     def jump(self, t, y):
         if not self.controller.memory_size:
             return y

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from ._adaptive import simulate_adaptive
 from ._engine import run
 from ._integrators import AbstractLieSolver
-from ._scene import Scene
+from ._scene import Scene, check_rotation, check_vector
 from ._state import LieState, all_finite
 from ._trajectory import (
     NONFINITE,
@@ -40,6 +40,8 @@ def simulate(
     adjoint=None,
     scalarize: bool | None = None,
     compensated: bool = False,
+    R0: Array | None = None,
+    Omega0: Array | None = None,
 ) -> Trajectory:
     """Integrate a scene with a fixed-step Lie-group method.
 
@@ -69,6 +71,13 @@ def simulate(
       compensation. Without it the rounding of that sum random-walks off the
       group (``||R^T R - I||`` about 1e-13 after 1e6 float64 steps); with it the
       drift stays near 1e-15, for a few percent more time. Fixed steps only.
+    - `R0`, `Omega0`: start the body from this attitude `(3, 3)` and/or body rate
+      `(3,)` instead of the scene's, as if the scene had been built with them (a
+      tracking controller's memory is set for ``R0``). To run a batch of starts,
+      ``vmap`` over these rather than over scenes with the start written into
+      ``scene.y0``: the scene's reference attitude then stays unbatched, and a
+      batch integrates it once instead of once per run (about 1.4x faster for the
+      seed scenario on CPU).
 
     **Returns:** a `Trajectory` with ``n_steps // save_every + 1`` points and a
     `Status` saying whether the run stayed finite and where it stopped if not.
@@ -87,6 +96,7 @@ def simulate(
             )
         if t1 is None:
             raise ValueError("adaptive mode (rtol/atol given) needs the final time t1")
+        scene = start_scene(scene, R0, Omega0, apart=False)[0]
         return simulate_adaptive(
             scene,
             method,
@@ -113,7 +123,29 @@ def simulate(
     save_every = _check_int(save_every, "save_every", 1)
     if n_steps % save_every:
         raise ValueError(f"n_steps ({n_steps}) must be a multiple of save_every ({save_every})")
-    return simulate_from(scene, None, method, dt, n_steps, save_every, scalarize, t0, compensated)
+    scene, R0 = start_scene(scene, R0, Omega0)
+    return simulate_from(scene, R0, method, dt, n_steps, save_every, scalarize, t0, compensated)
+
+
+def start_scene(scene: Scene, R0=None, Omega0=None, apart: bool = True):
+    """``(scene, R0)``: ``scene`` set to start from ``(R0, Omega0)`` (``None``: its own).
+
+    The rate goes into ``y0.x[:3]``. What depends on the body's initial attitude
+    is recomputed (`Scene.restarted`). Where the scene has time-driven rotation
+    groups and no step-dependent setup (`Scene.for_step`), and ``apart`` is set,
+    ``R0`` is returned apart for `simulate_from` (a batch of starts then shares
+    those groups); otherwise it is written into ``y0.R[0]`` and ``None`` returned.
+    """
+    if Omega0 is not None:
+        Omega0 = check_vector(Omega0, "Omega0").astype(scene.y0.x.dtype)
+        scene = eqx.tree_at(lambda s: s.y0.x, scene, scene.y0.x.at[:3].set(Omega0))
+    if R0 is None:
+        return scene, None
+    R0 = check_rotation(R0, "R0").astype(scene.y0.R.dtype)
+    scene = scene.restarted(R0)
+    if apart and scene.time_driven_groups and type(scene).for_step is Scene.for_step:
+        return scene, R0
+    return eqx.tree_at(lambda s: s.y0.R, scene, scene.y0.R.at[0].set(R0)), None
 
 
 def guarded_step(scene, method, dt, t0, compensated: bool = False):

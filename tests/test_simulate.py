@@ -442,3 +442,85 @@ def test_restarted_runs_reuse_the_compiled_program():
     tr2 = so3jax.simulate(eqx.tree_at(lambda s: s.y0, sc, tr.y), so3jax.RKMK4(), 0.01, 5, t0=0.05)
     assert len(traces) == n
     assert not np.allclose(tr2.R, tr.R)
+
+
+def test_start_arguments_run_the_scene_built_from_that_start():
+    """`simulate(scene, R0=, Omega0=)` equals the run of the scene built from that start.
+
+    Against each scene's own builder: the seed, a hysteretic quaternion controller (its
+    memory depends on R0; adaptive steps take the rebuilt scene), and a quadrotor with
+    sampled control (no time-driven group: the start is written into the scene before its
+    first sample).
+    """
+    from so3jax._quadrotor import quadrotor_recovery
+    from so3jax._simulate import start_scene
+    from so3jax.scenes import tracking
+
+    R, W = so3jax.exp(jnp.array([2.0, -1.0, 0.5])), jnp.array([0.3, -0.2, 0.1])
+
+    def rebuilt(sc):  # the same body, controller and reference, from (R, W)
+        return tracking(sc.body, sc.controller, R, W, sc.y0.R[1], sc.reference)
+
+    seed, uw = so3jax.scenes.seed(), so3jax.scenes.unwinding(hysteresis=True)
+    for scene in (seed, uw):
+        a = so3jax.simulate(scene, so3jax.RKMK4(), 0.01, 40, 10, R0=R, Omega0=W)
+        b = so3jax.simulate(rebuilt(scene), so3jax.RKMK4(), 0.01, 40, 10)
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+            np.testing.assert_allclose(x, y, rtol=0, atol=1e-14)
+    # Adaptive steps run the scene with the start written in: the rebuilt scene's y0.
+    for x, y in zip(jax.tree.leaves(start_scene(uw, R, W, apart=False)[0].y0),
+                    jax.tree.leaves(rebuilt(uw).y0), strict=True):  # fmt: skip
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-15)
+    assert float(uw.y0.x[3]) == 1.0  # the memory is h = 1 and the lifted quaternion of R0
+    q = np.asarray(so3jax.simulate(uw, so3jax.RKMK4(), 0.01, 1, R0=R).extras["q_lift"][0])
+    assert abs(abs(q @ np.asarray(so3jax.to_quat(R))) - 1) < 1e-12  # R0's, not the scene's
+    # A sampled quadrotor has no time-driven group and samples its held control from
+    # y0 (`for_step`): the start is written into y0 first, rates included.
+    rec = quadrotor_recovery(control_period=0.01)
+    started, apart = start_scene(rec, R, W)
+    assert apart is None
+    np.testing.assert_array_equal(started.y0.R, R[None])
+    np.testing.assert_array_equal(started.y0.x, rec.y0.x.at[:3].set(W))
+    assert start_scene(seed, R)[1] is not None  # the seed keeps R0 apart (Rd shared)
+
+
+def test_start_arguments_share_the_reference_under_vmap():
+    """Under vmap over `R0` the reference attitude stays unbatched; vmap equals single runs."""
+    sc = so3jax.scenes.seed()
+    method, dt, n = so3jax.RKMK4(), 0.01, 8
+    B = _engine.BATCHED_LAYOUT["run"][0]
+    R0, W0 = so3jax.initial_states(0, B)
+
+    def public(R, W):
+        return so3jax.simulate(sc, method, dt, n, R0=R, Omega0=W).R
+
+    def written(R, W):  # the start written into the scene: Rd batched with it
+        y0 = LieState(sc.y0.R.at[0].set(R), sc.y0.x.at[:3].set(W))
+        return so3jax.simulate(eqx.tree_at(lambda s: s.y0, sc, y0), method, dt, n).R
+
+    def n_unbatched(fn):
+        flat = max(_scan_carries(jax.make_jaxpr(jax.vmap(fn))(R0, W0).jaxpr), key=len)
+        return sum(a.shape == () and jnp.issubdtype(a.dtype, jnp.floating) for a in flat)
+
+    assert n_unbatched(public) >= 9  # Rd's 9 components, once for the batch
+    assert n_unbatched(written) < 9
+    batch = jax.vmap(public)(R0, W0)
+    for b in (0, B - 1):
+        np.testing.assert_allclose(batch[b], public(R0[b], W0[b]), rtol=0, atol=1e-14)
+        np.testing.assert_allclose(batch[b], written(R0[b], W0[b]), rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(R0=jnp.ones((3, 3))), "R0 is not a rotation"),
+        (dict(R0=jnp.eye(4)), "R0 must have shape"),
+        (dict(Omega0=jnp.zeros(4)), "Omega0 must have shape"),
+        (dict(R0=jnp.ones((3, 3)), t1=1.0, rtol=1e-6, atol=1e-6), "R0 is not a rotation"),
+    ],
+)
+def test_start_arguments_reject_bad_input(kw, match):
+    """Checked on both paths (the last case: adaptive steps)."""
+    steps = {} if "t1" in kw else dict(dt=0.01, n_steps=2)
+    with pytest.raises(ValueError, match=match):
+        so3jax.simulate(so3jax.scenes.seed(), so3jax.RKMK45(), **steps, **kw)
