@@ -17,7 +17,8 @@
    Cayley coordinates.
 
 The JSON records `jax.default_backend()` and the device kind: run it on a GPU
-for the GPU column.
+for the GPU column. ``--cpu-devices N`` splits the CPU into N JAX devices and shards
+every batch across them (the Lie-group runs and the diffrax baseline alike).
 
 Writes ``results/throughput[-quick].json`` and ``.png``.
 
@@ -28,18 +29,34 @@ Writes ``results/throughput[-quick].json`` and ``.png``.
 from __future__ import annotations
 
 import math
+import sys
 
-import _common as C
-import equinox as eqx
 import jax
-import jax.numpy as jnp
-import numpy as np
 
-import so3jax as s
+# ``--cpu-devices N``: N CPU devices, set before any backend starts (a process-wide setting,
+# which the library itself never makes); every batch is then sharded across them.
+if "--cpu-devices" in sys.argv:
+    jax.config.update("jax_num_cpu_devices", int(sys.argv[sys.argv.index("--cpu-devices") + 1]))
+
+import _common as C  # noqa: E402
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
+
+import so3jax as s  # noqa: E402
 
 LIE = C.lie_methods()
 AMBIENT = ["diffrax RK4", "diffrax Tsit5"]
 TSIT5_TOL = {"float64": 1e-8, "float32": 1e-5}
+
+
+def shard(x):
+    """``x`` split along its batch axis across the local devices (as is with one device)."""
+    devices = jax.local_devices()
+    if len(devices) == 1 or x.shape[0] % len(devices):
+        return x
+    return jax.device_put(x, NamedSharding(Mesh(devices, ("batch",)), PartitionSpec("batch")))
 
 
 def base_scene(dtype):
@@ -110,7 +127,7 @@ def sweep(args):
     for dname, label, B in C.progress(jobs, "throughput"):
         dtype = jnp.dtype(dname)
         scene = base_scene(dtype)
-        R0s = s.random_rotation(jax.random.key(0), (B,), dtype=dtype)
+        R0s = shard(s.random_rotation(jax.random.key(0), (B,), dtype=dtype))
         fn = runner(label, scene, dt, n_steps, tol=TSIT5_TOL[dname])
         reps = args.repeats if B * n_steps <= 1e6 else max(1, min(args.repeats, 2))
         r = C.compile_and_time(fn, R0s, repeats=reps)
@@ -200,7 +217,7 @@ def equal_accuracy(args):
     cal = calibrate(scene, args.quick)
     B = 64 if args.quick else 4096
     T = cal["T"]
-    R0s = s.random_rotation(jax.random.key(1), (B,), dtype=jnp.float64)
+    R0s = shard(s.random_rotation(jax.random.key(1), (B,), dtype=jnp.float64))
     # --quick: the array program only (each scalarized variant compiles for seconds).
     variants = ["RKMK4"] if args.quick else list(VARIANTS)
     out = {"batch": B, "variants": variants, **cal}
@@ -280,13 +297,22 @@ def main():
             action="store_true",
             help="rerun only the equal-accuracy part; keep the sweep of the existing JSON",
         )
+        p.add_argument(
+            "--cpu-devices",
+            type=int,
+            default=1,
+            help="run on this many CPU devices, every batch sharded across them "
+            "(writes throughput-cpuN.json)",
+        )
 
     args = C.parse_args(__doc__.splitlines()[0], extra)
-    json_path, png_path = C.output_paths(args, "throughput")
+    name = "throughput" if args.cpu_devices == 1 else f"throughput-cpu{args.cpu_devices}"
+    json_path, png_path = C.output_paths(args, name)
     if args.equal_only:
         import json
 
-        old = json.loads(open(json_path).read())
+        source = json_path if json_path.exists() else C.output_paths(args, "throughput")[0]
+        old = json.loads(open(source).read())
         sw = {**old["sweep"], "measured": old.get("env", {}).get("date")}
     else:
         sw = sweep(args)
