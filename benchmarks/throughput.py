@@ -220,7 +220,7 @@ def equal_accuracy(args):
     R0s = shard(s.random_rotation(jax.random.key(1), (B,), dtype=jnp.float64))
     # --quick: the array program only (each scalarized variant compiles for seconds).
     variants = ["RKMK4"] if args.quick else list(VARIANTS)
-    out = {"batch": B, "variants": variants, **cal}
+    out = {"batch": B, "variants": variants, "devices": len(jax.local_devices()), **cal}
     runs = []
     for label in variants:
         n = cal["n_steps"][label.split(" ")[0]]
@@ -263,9 +263,10 @@ def plot(res, path):
             )
         ax.set_xlabel("batch size")
         ax.set_ylabel("body-steps / s")
-        ax.set_title(
-            f"seed scenario, {dname}, {res['env']['backend']} ({res['env']['device_kind']})"
-        )
+        where = f"{res['env']['backend']} ({res['env']['device_kind']})"
+        if "from" in sw:  # an --equal-only run that borrowed another run's sweep
+            where = f"from {sw['from']}"
+        ax.set_title(f"seed scenario, {dname}, {where}", fontsize=9)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     eq = res["equal_accuracy"]
@@ -279,8 +280,10 @@ def plot(res, path):
     ax.set_xscale("log")
     ax.set_xlabel("trajectories / s")
     ax.tick_params(axis="y", labelsize=7)
+    n_dev = eq.get("devices", 1)
     ax.set_title(
-        f"{eq['batch']} x seed {eq['T']:g} s at attitude error 1e-8\n"
+        f"{eq['batch']} x seed {eq['T']:g} s at attitude error 1e-8"
+        f"{f', sharded over {n_dev} devices' if n_dev > 1 else ''}\n"
         f"best: {eq['best']['method']}, {eq['best']['speedup_over_tsit5']:.1f}x Tsit5",
         fontsize=9,
     )
@@ -314,6 +317,8 @@ def main():
         source = json_path if json_path.exists() else C.output_paths(args, "throughput")[0]
         old = json.loads(open(source).read())
         sw = {**old["sweep"], "measured": old.get("env", {}).get("date")}
+        if source != json_path:
+            sw["from"] = source.name
     else:
         sw = sweep(args)
     res = {"sweep": sw, "equal_accuracy": equal_accuracy(args)}
