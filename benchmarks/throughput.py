@@ -91,7 +91,6 @@ def runner(label, scene, dt, n_steps, t1=None, tol=None):
     """``f(R0s) -> (R_final, Omega_final, steps)``, vmapped over initial attitudes."""
 
     def one(R0):
-        sc = with_R0(scene, R0)
         # The Lie-group runs take the start as simulate's R0 (what the docs show for a
         # batch of starts): the reference attitude Rd then stays unbatched, integrated
         # once per batch. The ambient baseline integrates it once per run.
@@ -103,10 +102,12 @@ def runner(label, scene, dt, n_steps, t1=None, tol=None):
             tr = s.simulate(scene, LIE[label](), dt, n_steps, save_every=n_steps, R0=R0)
             steps = jnp.asarray(n_steps)
         elif label == "diffrax RK4":
+            sc = with_R0(scene, R0)  # the ambient baseline takes the start in its scene
             tr = s.simulate_ambient(sc, "rk4", dt=dt, n_steps=n_steps, save_every=n_steps)
             steps = tr.extras["num_accepted_steps"]
         else:
             T = n_steps * dt if t1 is None else t1
+            sc = with_R0(scene, R0)
             tr = s.simulate_ambient(sc, "tsit5", T, rtol=tol, atol=tol, n_save=2)
             steps = tr.extras["num_accepted_steps"]
         return tr.R[-1], tr.Omega[-1], steps

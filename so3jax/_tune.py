@@ -73,9 +73,8 @@ def with_start(scene, R0: Array, Omega0: Array):
     (`split_groups`), so a batch of starts shares the reference ``Rd``."""
     dtype = scene.y0.R.dtype
     R0 = jnp.asarray(R0, dtype)
-    memory = scene.controller.init_memory(R0, scene.y0.R[1]).astype(dtype)
-    x = jnp.concatenate([jnp.asarray(Omega0, dtype), memory])
-    return eqx.tree_at(lambda s: s.y0.x, scene, x), R0
+    x = scene.y0.x.at[:3].set(jnp.asarray(Omega0, dtype))
+    return eqx.tree_at(lambda s: s.y0.x, scene, x).restarted(R0), R0
 
 
 def _gain_array(value, name: str, dtype) -> Array:

@@ -393,6 +393,13 @@ def _scan_carries(jaxpr):
     return out
 
 
+def _unbatched_floats(fn, *args) -> int:
+    """Unbatched float scalars in the carry of ``vmap(fn)``'s scalarized step loop."""
+    carries = _scan_carries(jax.make_jaxpr(jax.vmap(fn))(*args).jaxpr)
+    flat = max(carries, key=len)  # the scalarized step loop: one carry per component
+    return sum(a.shape == () and jnp.issubdtype(a.dtype, jnp.floating) for a in flat)
+
+
 def test_batched_runs_share_the_reference_attitude():
     """Runs that share Rd's start carry it unbatched: integrated once per batch, not per run."""
     from so3jax._simulate import simulate_from
@@ -413,10 +420,7 @@ def test_batched_runs_share_the_reference_attitude():
         return so3jax.simulate(with_gains(sc, k, 1.0), method, dt, n).R
 
     for fn, args in ((starts, (R0, W0)), (gains, (k,))):
-        carries = _scan_carries(jax.make_jaxpr(jax.vmap(fn))(*args).jaxpr)
-        flat = max(carries, key=len)  # the scalarized step loop: one carry per component
-        unbatched = [a for a in flat if a.shape == () and jnp.issubdtype(a.dtype, jnp.floating)]
-        assert len(unbatched) >= 9, [a.str_short() for a in flat]  # Rd's 9 components
+        assert _unbatched_floats(fn, *args) >= 9  # Rd's 9 components
     # ... and the numbers are those of runs one at a time (a small batch: array program).
     R0, W0 = R0[:3], W0[:3]
     batch = jax.vmap(starts)(R0, W0)
@@ -498,12 +502,8 @@ def test_start_arguments_share_the_reference_under_vmap():
         y0 = LieState(sc.y0.R.at[0].set(R), sc.y0.x.at[:3].set(W))
         return so3jax.simulate(eqx.tree_at(lambda s: s.y0, sc, y0), method, dt, n).R
 
-    def n_unbatched(fn):
-        flat = max(_scan_carries(jax.make_jaxpr(jax.vmap(fn))(R0, W0).jaxpr), key=len)
-        return sum(a.shape == () and jnp.issubdtype(a.dtype, jnp.floating) for a in flat)
-
-    assert n_unbatched(public) >= 9  # Rd's 9 components, once for the batch
-    assert n_unbatched(written) < 9
+    assert _unbatched_floats(public, R0, W0) >= 9  # Rd's 9 components, once for the batch
+    assert _unbatched_floats(written, R0, W0) < 9
     batch = jax.vmap(public)(R0, W0)
     for b in (0, B - 1):
         np.testing.assert_allclose(batch[b], public(R0[b], W0[b]), rtol=0, atol=1e-14)
