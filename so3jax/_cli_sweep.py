@@ -192,7 +192,12 @@ def tune_parser() -> argparse.ArgumentParser:
     p.add_argument("--iters", type=int, default=100, help="optimiser steps")
     p.add_argument("--lr", type=_positive(float), default=0.1, help="Adam step in log-gain")
     p.add_argument("--per-axis", action="store_true", help="tune one gain per body axis")
-    p.add_argument("--gradient", choices=("reverse", "forward"), default="reverse")
+    p.add_argument(
+        "--gradient",
+        choices=("auto", "reverse", "forward"),
+        default="auto",
+        help="differentiation mode (auto: forward mode through a few gains, as here)",
+    )
     _common(p, "so3jax-tune", 3.0)
     return p
 
@@ -355,7 +360,7 @@ def tune_main(argv=None) -> int:
     from . import _plot_sweep as plots, scenes
     from ._simulate import simulate
     from ._sweep import initial_states
-    from ._tune import CostWeights, tune, with_gains
+    from ._tune import CostWeights, _resolve_gradient, tune, with_gains
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -394,7 +399,7 @@ def tune_main(argv=None) -> int:
         "cost_history": result.cost_history.tolist(),
         "seconds": seconds,
         "dtype": args.dtype,
-        "gradient": args.gradient,
+        "gradient": _resolve_gradient(args.gradient, (result.gains.k_R, result.gains.k_Omega)),
         "n_attitudes": args.n_attitudes,
         "horizon": n_steps * args.dt,
     }

@@ -157,6 +157,41 @@ def test_forward_and_reverse_tuning_agree():
     np.testing.assert_allclose(rev.k_Omega_history, fwd.k_Omega_history, rtol=1e-10)
 
 
+def test_auto_gradient_is_forward_mode_through_few_scalars(monkeypatch):
+    """``gradient="auto"`` (the default) runs forward mode through at most
+    `FORWARD_MODE_MAX` tuned scalars and reverse mode beyond, in both modes of `tune`."""
+    from so3jax import _tune
+
+    assert _tune._resolve_gradient("auto", (1.0, 2.0)) == "forward"
+    assert _tune._resolve_gradient("auto", jnp.zeros(_tune.FORWARD_MODE_MAX)) == "forward"
+    assert _tune._resolve_gradient("auto", [jnp.zeros(_tune.FORWARD_MODE_MAX), 1.0]) == "reverse"
+    assert _tune._resolve_gradient("reverse", 1.0) == "reverse"
+    with pytest.raises(ValueError, match="auto"):
+        _tune._resolve_gradient("backward", 1.0)
+    modes = []
+    original = _tune._value_and_grad
+
+    def spy(loss, gradient):
+        modes.append(gradient)
+        return original(loss, gradient)
+
+    monkeypatch.setattr(_tune, "_value_and_grad", spy)
+    scene = s.scenes.seed()
+    kw = dict(method=s.LieEuler(), dt=DT, n_steps=4, n_iter=0)  # nothing is differentiated
+    s.tune(scene, (2.0, 1.0), **kw)
+    s.tune(scene, (2.0, 1.0), gradient="reverse", **kw)
+
+    def cost(tr):
+        return jnp.sum(tr.Omega**2)
+
+    def every_float(sc):  # the seed's 46 scalars
+        return sc.y0, sc.body, sc.controller.gains, sc.reference
+
+    s.tune(scene, cost=cost, **kw)
+    s.tune(scene, cost=cost, where=every_float, **kw)
+    assert modes == ["forward", "reverse", "forward", "reverse"]
+
+
 def test_bad_input():
     scene = s.scenes.seed()
     with pytest.raises(ValueError, match="effort"):
