@@ -351,10 +351,38 @@ def _right_jacobian_times(w: Array, v: Array) -> Array:
 
 def _expm1_raw(w: Array) -> Array:
     t = _dot(w, w)
-    A = _coeffs(t, "A")[..., None, None]
-    B = _coeffs(t, "B")[..., None, None]
+    A, B = (c[..., None, None] for c in _ab_coeffs(t))
     wwT = w[..., :, None] * w[..., None, :]
     return A * _hat(w) + B * (wwT - t[..., None, None] * _eye_like(w, w.shape[:-1]))
+
+
+# A = sin(th)/th and B = 2 (sin(th/2)/th)^2 lose no digits to cancellation at any angle,
+# unlike C and D, so the group updates need their series (kept because th = sqrt(t) has
+# no safe derivative at 0) only far closer to 0, and 4 terms of it instead of 9: the
+# first omitted term is t^4/9! < 3e-22 below 1e-4 (float64) and < 3e-14 below 1e-2.
+_AB_NTERMS = 4
+
+
+def _ab_coeffs(t: Array) -> tuple[Array, Array]:
+    """``(A, B)`` at ``t = theta^2`` for the exponential's updates (see `_AB_NTERMS`)."""
+    small = t < (1e-4 if jnp.finfo(t.dtype).bits >= 64 else 1e-2)
+    ts = jnp.where(small, jnp.ones_like(t), t)
+    th = jnp.sqrt(ts)
+    A = jnp.where(small, _polyval(_A_SERIES[:_AB_NTERMS], t), jnp.sin(th) / th)
+    B = jnp.where(small, _polyval(_B_SERIES[:_AB_NTERMS], t), 2.0 * (jnp.sin(0.5 * th) / th) ** 2)
+    return A, B
+
+
+def _times_expm1(M: Array, w: Array, A: Array, B: Array) -> Array:
+    """``M (exp(w) - I) = A M hat(w) + B M hat(w)^2`` from row cross products.
+
+    Row ``i`` of ``M hat(w)`` is ``m_i x w``: 54 operations for the two
+    products and 27 for the sum, against about 100 for forming ``exp(w) - I``
+    and multiplying.
+    """
+    ww = w[..., None, :]
+    X = _cross(M, ww)
+    return A[..., None, None] * X + B[..., None, None] * _cross(X, ww)
 
 
 def _rmul_exp(R: Array, w: Array) -> Array:
@@ -375,7 +403,11 @@ def _exp_increment(R: Array, w: Array) -> Array:
     Its derivative is given in closed form (`_exp_increment_jvp`) rather than
     left to autodiff of Rodrigues' formula.
     """
-    return _mm(R, _expm1_raw(w))
+    return _exp_increment_raw(R, w)
+
+
+def _exp_increment_raw(R: Array, w: Array) -> Array:
+    return _times_expm1(R, w, *_ab_coeffs(_dot(w, w)))
 
 
 @functools.partial(_exp_increment.defjvp, symbolic_zeros=True)
@@ -392,6 +424,9 @@ def _exp_increment_jvp(primals, tangents):
     """
     R, w = primals
     dR, dw = tangents
+    # Here exp(w) - I is formed once and multiplied: with the primal's row cross
+    # products instead, the Jacobian program over 16 runs (array layout, where the
+    # number of kernels sets the time) ran 49.5 against 45.8 ms on one core.
     E = _expm1_raw(w)
     D = _mm(R, E)
     dD = None

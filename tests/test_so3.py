@@ -583,6 +583,48 @@ def test_coeffs_match_mpmath(which, dtype):
     assert abs(below - at) <= TAYLOR_RTOL[dtype] * abs(at)
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_update_coeffs_match_mpmath_across_their_cutoff(dtype):
+    """`_ab_coeffs` (A and B of the group updates, with a short series below a small
+    cut-off) against 40 digits, on both sides of its own cut-off and of `_cutoff`."""
+    small = 1e-4 if dtype == F64 else 1e-2
+    t = np.concatenate(
+        [
+            theta_sweep(dtype, np.sqrt(small)) ** 2,
+            theta_sweep(dtype, np.sqrt(_so3._cutoff(dtype))) ** 2,
+        ]
+    ).astype(dtype)
+    A, B = jax.jit(_so3._ab_coeffs)(t)
+    assert A.dtype == B.dtype == dtype
+    for which, got in (("A", A), ("B", B)):
+        ref = np.array([float(mp_coeff(x, which)) for x in t])
+        floor = EPS[dtype] if which == "A" else 0.0
+        err = np.abs(f64(got) - ref) / (TAYLOR_RTOL[dtype] * np.abs(ref) + floor)
+        assert err.max() <= 1.0, (which, err.max(), t[err.argmax()])
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_exp_update_matches_mpmath(dtype):
+    """``R (exp(w) - I)`` of the integrators (row cross products) against 40 digits."""
+    rng = np.random.default_rng(7)
+    R = Rotation.random(random_state=rng).as_matrix()
+    thetas = np.concatenate([theta_sweep(dtype, 1e-2, n=12), [2.0, 3.1]])
+    worst = 0.0
+    Rm = mp.matrix([[mp.mpf(float(c)) for c in row] for row in R])
+    for th in thetas:
+        w = (SWEEP_DIRECTION * th).astype(dtype)
+        x = [mp.mpf(float(c)) for c in w]
+        t = mp.sqrt(sum(c * c for c in x))
+        W = mp.matrix([[0, -x[2], x[1]], [x[2], 0, -x[0]], [-x[1], x[0], 0]])
+        a, b = Rm * W * (mp.sin(t) / t), Rm * W * W * ((1 - mp.cos(t)) / t**2)
+        ref = np.array([[float((a + b)[i, j]) for j in range(3)] for i in range(3)])
+        # relative to the size of the two terms
+        scale = np.array([[float(abs(a[i, j]) + abs(b[i, j])) for j in range(3)] for i in range(3)])
+        got = f64(_so3._exp_increment(jnp.asarray(R, dtype), jnp.asarray(w)))
+        worst = max(worst, float((np.abs(got - ref) / scale).max()))
+    assert worst <= 8 * TAYLOR_RTOL[dtype], worst
+
+
 def mp_jacobians(w):
     """exp and the four Jacobians of ``w`` at 40 digits, and the size of their terms."""
     w = [mp.mpf(float(x)) for x in w]
