@@ -188,16 +188,33 @@ def _polyval(coeffs: np.ndarray, t: Array) -> Array:
     return out
 
 
+def _safe_theta(t: Array, cutoff: float) -> tuple[Array, Array, Array]:
+    """``(small, ts, th)``: where ``t < cutoff``, and ``t`` and ``theta`` made safe there.
+
+    ``ts`` is ``t`` with 1 below the cut-off, so the closed forms (and their
+    derivatives) stay finite on the branch ``where`` discards.
+    """
+    small = t < cutoff
+    ts = jnp.where(small, jnp.ones_like(t), t)
+    return small, ts, jnp.sqrt(ts)
+
+
+def _closed_A(th: Array) -> Array:
+    return jnp.sin(th) / th
+
+
+def _closed_B(th: Array) -> Array:
+    # 2 sin^2(th/2) / th^2 has no cancellation, unlike (1 - cos th) / th^2.
+    return 2.0 * (jnp.sin(0.5 * th) / th) ** 2
+
+
 def _coeffs(t: Array, which: str) -> Array:
     """Evaluate one of the coefficient functions A, B, C, D at ``t = theta^2``."""
-    small = t < _cutoff(t.dtype)
-    ts = jnp.where(small, jnp.ones_like(t), t)  # safe argument for the closed form
-    th = jnp.sqrt(ts)
+    small, ts, th = _safe_theta(t, _cutoff(t.dtype))
     if which == "A":
-        series, closed = _A_SERIES, jnp.sin(th) / th
+        series, closed = _A_SERIES, _closed_A(th)
     elif which == "B":
-        # 2 sin^2(th/2) / th^2 has no cancellation, unlike (1 - cos th) / th^2.
-        series, closed = _B_SERIES, 2.0 * (jnp.sin(0.5 * th) / th) ** 2
+        series, closed = _B_SERIES, _closed_B(th)
     elif which == "C":
         series, closed = _C_SERIES, (th - jnp.sin(th)) / (ts * th)
     elif which == "D":
@@ -365,11 +382,9 @@ _AB_NTERMS = 4
 
 def _ab_coeffs(t: Array) -> tuple[Array, Array]:
     """``(A, B)`` at ``t = theta^2`` for the exponential's updates (see `_AB_NTERMS`)."""
-    small = t < (1e-4 if jnp.finfo(t.dtype).bits >= 64 else 1e-2)
-    ts = jnp.where(small, jnp.ones_like(t), t)
-    th = jnp.sqrt(ts)
-    A = jnp.where(small, _polyval(_A_SERIES[:_AB_NTERMS], t), jnp.sin(th) / th)
-    B = jnp.where(small, _polyval(_B_SERIES[:_AB_NTERMS], t), 2.0 * (jnp.sin(0.5 * th) / th) ** 2)
+    small, _, th = _safe_theta(t, 1e-4 if jnp.finfo(t.dtype).bits >= 64 else 1e-2)
+    A = jnp.where(small, _polyval(_A_SERIES[:_AB_NTERMS], t), _closed_A(th))
+    B = jnp.where(small, _polyval(_B_SERIES[:_AB_NTERMS], t), _closed_B(th))
     return A, B
 
 
