@@ -418,23 +418,29 @@ def _expm1(w: Array) -> Array:
 @_expm1.defjvp
 def _expm1_jvp(primals, tangents):
     (w,), (dw,) = primals, tangents
-    E = _expm1_raw(w)
-    v = _right_jacobian_times(w, dw)
+    t = _dot(w, w)
+    A, B, C = _abc_coeffs(t)
+    E = _expm1_from(w, t, A, B)
+    v = _right_jacobian_times(w, dw, B, C)
     return E, _cross(E + _eye_like(w, w.shape[:-1]), v[..., None, :]).astype(E.dtype)
 
 
-def _right_jacobian_times(w: Array, v: Array) -> Array:
-    """``J_r(w) v = v - B w x v + C w x (w x v)``."""
-    t = _dot(w, w)
+def _right_jacobian_times(w: Array, v: Array, B: Array, C: Array) -> Array:
+    """``J_r(w) v = v - B w x v + C w x (w x v)`` (coefficients from `_abc_coeffs`)."""
     wxv = _cross(w, v)
-    return v - _coeffs(t, "B")[..., None] * wxv + _coeffs(t, "C")[..., None] * _cross(w, wxv)
+    return v - B[..., None] * wxv + C[..., None] * _cross(w, wxv)
+
+
+def _expm1_from(w: Array, t: Array, A: Array, B: Array) -> Array:
+    """``exp(w) - I = A hat(w) + B (w w^T - t I)`` given ``t = |w|^2`` and A, B."""
+    wwT = w[..., :, None] * w[..., None, :]
+    A, B = A[..., None, None], B[..., None, None]
+    return A * _hat(w) + B * (wwT - t[..., None, None] * _eye_like(w, w.shape[:-1]))
 
 
 def _expm1_raw(w: Array) -> Array:
     t = _dot(w, w)
-    A, B = (c[..., None, None] for c in _ab_coeffs(t))
-    wwT = w[..., :, None] * w[..., None, :]
-    return A * _hat(w) + B * (wwT - t[..., None, None] * _eye_like(w, w.shape[:-1]))
+    return _expm1_from(w, t, *_ab_coeffs(t))
 
 
 # A = sin(th)/th and B = 2 (sin(th/2)/th)^2 lose no digits to cancellation at any angle,
@@ -444,13 +450,35 @@ def _expm1_raw(w: Array) -> Array:
 _AB_NTERMS = 4
 
 
+def _ab_cutoff(dtype) -> float:
+    return 1e-4 if jnp.finfo(dtype).bits >= 64 else 1e-2
+
+
 def _ab_coeffs(t: Array) -> tuple[Array, Array]:
     """``(A, B)`` at ``t = theta^2`` for the exponential's updates (see `_AB_NTERMS`)."""
-    small, _, th = _safe_theta(t, 1e-4 if jnp.finfo(t.dtype).bits >= 64 else 1e-2)
+    small, _, th = _safe_theta(t, _ab_cutoff(t.dtype))
     A_closed, B_closed = _closed_AB(th)
     A = jnp.where(small, _polyval(_A_SERIES[:_AB_NTERMS], t), A_closed)
     B = jnp.where(small, _polyval(_B_SERIES[:_AB_NTERMS], t), B_closed)
     return A, B
+
+
+def _abc_coeffs(t: Array) -> tuple[Array, Array, Array]:
+    """``(A, B, C)`` at ``t = theta^2`` for the derivative rules, from one ``sincos``.
+
+    A and B as in `_ab_coeffs`. ``C = (th - sin th) / th^3 = (1 - A) / t`` loses
+    digits to cancellation near 0 (about ``12 eps`` at the cut-off), so it takes
+    the 9-term series below `_cutoff` as `_coeffs` does; above it, ``1 - A`` from
+    the same closed form of A. One sine and cosine instead of three (the rule
+    of an exponential update used to take A and B at one cut-off and B and C
+    at another: two arguments, so nothing to share).
+    """
+    A, B = _ab_coeffs(t)
+    small_c = t < _cutoff(t.dtype)
+    C = jnp.where(
+        small_c, _polyval(_C_SERIES, t), (1.0 - A) / jnp.where(small_c, jnp.ones_like(t), t)
+    )
+    return A, B, C
 
 
 def _times_expm1(M: Array, w: Array, A: Array, B: Array) -> Array:
@@ -507,13 +535,15 @@ def _exp_increment_jvp(primals, tangents):
     # Here exp(w) - I is formed once and multiplied: with the primal's row cross
     # products instead, the Jacobian program over 16 runs (array layout, where the
     # number of kernels sets the time) ran 49.5 against 45.8 ms on one core.
-    E = _expm1_raw(w)
+    t = _dot(w, w)
+    A, B, C = _abc_coeffs(t)
+    E = _expm1_from(w, t, A, B)
     D = _mm(R, E)
     dD = None
     if not isinstance(dR, SymbolicZero):
         dD = _mm(dR, E)
     if not isinstance(dw, SymbolicZero):
-        v = _right_jacobian_times(w, dw)
+        v = _right_jacobian_times(w, dw, B, C)
         rows = _cross(R + D, v[..., None, :])  # rows of (R + D) hat(v) are r_i x v
         dD = rows if dD is None else dD + rows
     if dD is None:  # pragma: no cover (the rule runs only with a nonzero tangent)

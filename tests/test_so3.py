@@ -623,7 +623,8 @@ def test_sincos_matches_numpy(dtype):
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_update_coeffs_match_mpmath_across_their_cutoff(dtype):
     """`_ab_coeffs` (A and B of the group updates, with a short series below a small
-    cut-off) against 40 digits, on both sides of its own cut-off and of `_cutoff`."""
+    cut-off) and `_abc_coeffs` (with C) against 40 digits, on both sides of their
+    cut-offs and of `_cutoff`."""
     small = 1e-4 if dtype == F64 else 1e-2
     t = np.concatenate(
         [
@@ -633,7 +634,12 @@ def test_update_coeffs_match_mpmath_across_their_cutoff(dtype):
     ).astype(dtype)
     A, B = jax.jit(_so3._ab_coeffs)(t)
     assert A.dtype == B.dtype == dtype
-    for which, got in (("A", A), ("B", B)):
+    # the derivative rules' (A, B, C) from one sincos: A and B the same, C = (1 - A) / t
+    # above `_cutoff` (its cancellation is what TAYLOR_RTOL allows for)
+    A3, B3, C = jax.jit(_so3._abc_coeffs)(t)
+    np.testing.assert_array_equal(np.asarray(A3), np.asarray(A))
+    np.testing.assert_array_equal(np.asarray(B3), np.asarray(B))
+    for which, got in (("A", A), ("B", B), ("C", C)):
         ref = np.array([float(mp_coeff(x, which)) for x in t])
         floor = EPS[dtype] if which == "A" else 0.0
         err = np.abs(f64(got) - ref) / (TAYLOR_RTOL[dtype] * np.abs(ref) + floor)
