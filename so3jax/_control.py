@@ -27,19 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._dynamics import RigidBody
-from ._so3 import (
-    _as_float,
-    _cross,
-    _dot,
-    _is_concrete,
-    _mm,
-    _mT,
-    _mv,
-    _prep,
-    _sincos,
-    _to_quat,
-    _vee,
-)
+from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _prep, _to_quat, _vee
 from ._types import Array, ArrayLike, Rot, Scalar, Vec3
 
 # --------------------------------------------------------------------------
@@ -404,8 +392,8 @@ class SinusoidalRate(AbstractReference):
     def __call__(self, t):
         t = jnp.asarray(t)[..., None]
         w = 2 * jnp.pi * self.frequency
-        s, c = _sincos(w * t + self.phase)
-        return self.amplitude * s, self.amplitude * w * c
+        arg = w * t + self.phase
+        return self.amplitude * jnp.sin(arg), self.amplitude * w * jnp.cos(arg)
 
 
 class ConingRate(AbstractReference):
@@ -442,7 +430,7 @@ class ConingRate(AbstractReference):
 
     def __call__(self, t):
         t = jnp.asarray(t)
-        s, c = _sincos(self.rate * t)
+        c, s = jnp.cos(self.rate * t), jnp.sin(self.rate * t)
         a, nu = self.amplitude, self.rate
         spin = jnp.broadcast_to(self.spin, c.shape).astype(c.dtype)
         w = jnp.stack([a * c, a * s, spin], -1)
