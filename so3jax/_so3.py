@@ -211,12 +211,12 @@ def _safe_theta(t: Array, cutoff: float) -> tuple[Array, Array, Array]:
 # ulp or two while |x| < 1e5 (checked against NumPy in tests/test_so3.py); the
 # reduction loses digits beyond that, far past any angle one time step turns.
 _SIN_TAIL = {
-    64: [(-1) ** (k + 1) / math.factorial(2 * k + 3) for k in range(7)],
-    32: [(-1) ** (k + 1) / math.factorial(2 * k + 3) for k in range(4)],
+    bits: np.array([(-1) ** (k + 1) / math.factorial(2 * k + 3) for k in range(n)])
+    for bits, n in ((64, 7), (32, 4))
 }
 _COS_TAIL = {
-    64: [(-1) ** k / math.factorial(2 * k + 4) for k in range(7)],
-    32: [(-1) ** k / math.factorial(2 * k + 4) for k in range(4)],
+    bits: np.array([(-1) ** k / math.factorial(2 * k + 4) for k in range(n)])
+    for bits, n in ((64, 7), (32, 4))
 }
 _PIO2_PIECES = {
     64: (1.57079632673412561417e00, 6.07710050630396597660e-11, 2.02226624879595063154e-21),
@@ -237,8 +237,8 @@ def _sincos(x: Array) -> tuple[Array, Array]:
     k = jnp.round(x * (2.0 / math.pi))
     r = ((x - k * p1) - k * p2) - k * p3
     r2 = r * r
-    s = r + r * r2 * _polyval(np.array(_SIN_TAIL[bits]), r2)
-    c = (1.0 - 0.5 * r2) + r2 * r2 * _polyval(np.array(_COS_TAIL[bits]), r2)
+    s = r + r * r2 * _polyval(_SIN_TAIL[bits], r2)
+    c = (1.0 - 0.5 * r2) + r2 * r2 * _polyval(_COS_TAIL[bits], r2)
     q = k - 4.0 * jnp.floor(0.25 * k)  # k mod 4, exact in floating point
     odd = (q == 1.0) | (q == 3.0)
     sin_x, cos_x = jnp.where(odd, c, s), jnp.where(odd, s, c)
@@ -267,17 +267,13 @@ def _closed_AB(th: Array) -> tuple[Array, Array]:
     return u * c, 0.5 * u * u
 
 
-def _closed_B(th: Array) -> Array:
-    return _closed_AB(th)[1]
-
-
 def _coeffs(t: Array, which: str) -> Array:
     """Evaluate one of the coefficient functions A, B, C, D at ``t = theta^2``."""
     small, ts, th = _safe_theta(t, _cutoff(t.dtype))
     if which == "A":
         series, closed = _A_SERIES, _closed_AB(th)[0]
     elif which == "B":
-        series, closed = _B_SERIES, _closed_B(th)
+        series, closed = _B_SERIES, _closed_AB(th)[1]
     elif which == "C":
         series, closed = _C_SERIES, (th - _sincos(th)[0]) / (ts * th)
     elif which == "D":
@@ -418,9 +414,7 @@ def _expm1(w: Array) -> Array:
 @_expm1.defjvp
 def _expm1_jvp(primals, tangents):
     (w,), (dw,) = primals, tangents
-    t = _dot(w, w)
-    A, B, C = _abc_coeffs(t)
-    E = _expm1_from(w, t, A, B)
+    E, B, C = _expm1_for_rules(w)
     v = _right_jacobian_times(w, dw, B, C)
     return E, _cross(E + _eye_like(w, w.shape[:-1]), v[..., None, :]).astype(E.dtype)
 
@@ -474,11 +468,15 @@ def _abc_coeffs(t: Array) -> tuple[Array, Array, Array]:
     at another: two arguments, so nothing to share).
     """
     A, B = _ab_coeffs(t)
-    small_c = t < _cutoff(t.dtype)
-    C = jnp.where(
-        small_c, _polyval(_C_SERIES, t), (1.0 - A) / jnp.where(small_c, jnp.ones_like(t), t)
-    )
-    return A, B, C
+    small_c, ts, _ = _safe_theta(t, _cutoff(t.dtype))
+    return A, B, jnp.where(small_c, _polyval(_C_SERIES, t), (1.0 - A) / ts)
+
+
+def _expm1_for_rules(w: Array) -> tuple[Array, Array, Array]:
+    """``(exp(w) - I, B, C)``: what both derivative rules of the exponential need."""
+    t = _dot(w, w)
+    A, B, C = _abc_coeffs(t)
+    return _expm1_from(w, t, A, B), B, C
 
 
 def _times_expm1(M: Array, w: Array, A: Array, B: Array) -> Array:
@@ -535,9 +533,7 @@ def _exp_increment_jvp(primals, tangents):
     # Here exp(w) - I is formed once and multiplied: with the primal's row cross
     # products instead, the Jacobian program over 16 runs (array layout, where the
     # number of kernels sets the time) ran 49.5 against 45.8 ms on one core.
-    t = _dot(w, w)
-    A, B, C = _abc_coeffs(t)
-    E = _expm1_from(w, t, A, B)
+    E, B, C = _expm1_for_rules(w)
     D = _mm(R, E)
     dD = None
     if not isinstance(dR, SymbolicZero):
