@@ -589,7 +589,12 @@ def test_sincos_matches_numpy(dtype):
     against NumPy's float64 ``sin`` / ``cos`` of the same inputs: within an ulp of 1
     absolute up to 1e5, within a few ulp relative below 100 (float32: the three
     pieces of pi/2 leave some relative error next to the zeros of large multiples of
-    pi), signs right in every quadrant, exact derivatives."""
+    pi), signs right in every quadrant, exact derivatives.
+
+    float32 beyond |x| = 2^13 relies on XLA fusing ``k * p2`` into the subtraction (an
+    FMA; its CPU backend does at the default optimisation level): without it (with
+    ``--xla_backend_optimization_level=0``) the product is rounded and the error reaches
+    8 ulp at 1e5, which fails here. The group updates take half-angles, far below that."""
     rng = np.random.default_rng(3)
     x = np.concatenate(
         [
