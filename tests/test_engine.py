@@ -259,7 +259,7 @@ def test_scalarized_tangent_program_for_large_batches():
             sc0, k[0], k[1], R0, W0, SEED_METHOD, DT, N, program=program
         )
 
-    f = jax.jit(jax.grad(cost("auto")))
+    f = _jit_grad(cost("auto"))
     assert "conditional(" in f.lower(K0).compile().as_text()  # scalarized, with cuts
     assert _rel(f(K0), _jit_grad(cost("autodiff"))(K0)) < 1e-10
 
