@@ -107,7 +107,10 @@ def test_gradients_equal_autodiff(method, monkeypatch):
     """The default gradient (the one-pass Jacobian through the step size and the initial
     rates) against JAX's autodiff, every method, exp and Cayley; the discrete
     adjoint for one method of each family (the others share its code: the suite's time
-    goes to compiling these programs)."""
+    goes to compiling these programs). The reference is JAX's forward mode (``jacfwd``
+    of the checkpointed array program), which compiles in less than half the time of
+    its reverse mode (RKMK45: 4.5 against 10.2 s); reverse-mode autodiff is the
+    reference of the seed tests below."""
     calls = []
     one_pass = _engine._jacobian_jvp
 
@@ -116,7 +119,7 @@ def test_gradients_equal_autodiff(method, monkeypatch):
         return one_pass(*args)
 
     monkeypatch.setattr(_engine, "_jacobian_jvp", spy)
-    ref = _jit_grad(_free_body_cost("autodiff", method))(X0)
+    ref = jax.jit(jax.jacfwd(_free_body_cost("autodiff", method)))(X0)
     assert _rel(_jit_grad(_free_body_cost("auto", method))(X0), ref) < 1e-10
     assert len(calls) == 1 and 4 <= calls[0] <= _engine.FORWARD_JACOBIAN_MAX, calls  # one pass
     if type(method) in ADJOINT_CHECKED and getattr(method, "coords", "exp") == "exp":
@@ -152,7 +155,7 @@ def test_rollout_cost_gradient(program):
 
 
 def test_float32_gradients():
-    f64 = _jit_grad(_free_body_cost("autodiff", s.CF4()))(X0)
+    f64 = jax.jit(jax.jacfwd(_free_body_cost("autodiff", s.CF4())))(X0)
     for program in ("adjoint", "auto"):  # "auto": the one-pass Jacobian
         x = X0.astype(jnp.float32)
         g = _jit_grad(_free_body_cost(program, s.CF4()))(x)
