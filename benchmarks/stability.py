@@ -152,8 +152,11 @@ def stable_dt(args):
                 continue
             fine = np.geomspace(T / ns[k], T / ns[k + 1], n_fine + 2)[1:-1]
             nf = np.maximum(1, np.round(T / fine)).astype(np.int32)
-            y, ok, _ = run(sc, jnp.asarray(T / nf), jnp.asarray(nf), jnp.asarray(nf.max()))
-            gf = criterion(y, ok, R_ref, W_ref)
+            # Padded to the coarse grid's length (repeating the last candidate): the
+            # program compiled for the coarse grid runs it.
+            pad = np.concatenate([nf, np.repeat(nf[-1:], n_grid - n_fine)])
+            y, ok, _ = run(sc, jnp.asarray(T / pad), jnp.asarray(pad), jnp.asarray(pad.max()))
+            gf = criterion(y, ok, R_ref, W_ref)[:n_fine]
             j = int(np.argmin(gf)) - 1 if not gf.all() else len(nf) - 1
             res.append(float(T / nf[j]) if j >= 0 else float(T / ns[k]))
         out["max_dt"][label] = res
