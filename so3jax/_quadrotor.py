@@ -483,6 +483,12 @@ def _control_of(scene, t, y):
     return scene.control(t, y)
 
 
+#: The controller at one ``(t, y)``, compiled. `quadrotor` and `Quadrotor.for_step`
+#: sample it outside any ``jit``; run op by op, its first call compiled some 75 small
+#: kernels (2.3 s against 0.7 s for the whole controller at once).
+_sample_control = eqx.filter_jit(_control_of)
+
+
 class Quadrotor(Scene):
     """A quadrotor under Lee's controller on ``SO(3) x R^9``, continuous or sampled.
 
@@ -573,7 +579,7 @@ class Quadrotor(Scene):
             n = jnp.maximum(jnp.round(T / dt), 1.0).astype(T.dtype)
         scene = eqx.tree_at(lambda s: s.steps_per_sample, self, n, is_leaf=lambda a: a is None)
         y = self.y0
-        c = self.control(jnp.asarray(t0, y.x.dtype), y)
+        c = _sample_control(self, jnp.asarray(t0, y.x.dtype), y)
         at_sample = (y.x[..., _COUNTER] == 0)[..., None]
         held = jnp.where(at_sample, jnp.concatenate([c.f[..., None], c.M], -1), y.x[..., _HELD])
         x = jnp.concatenate([y.x[..., :_N], held, y.x[..., _COUNTER:]], -1)
@@ -700,7 +706,7 @@ def quadrotor(
     y0 = LieState(R0[None], jnp.concatenate([Omega0, x0, v0]))
     scene = Quadrotor(vehicle=vehicle, gains=gains, reference=reference, y0=y0, control_period=T)
     if T is not None:
-        c = scene.control(jnp.zeros((), dtype), y0)
+        c = _sample_control(scene, jnp.zeros((), dtype), y0)
         held = jnp.concatenate([c.f[None], c.M, jnp.zeros(1, dtype)])
         scene = eqx.tree_at(lambda s: s.y0, scene, LieState(y0.R, jnp.concatenate([y0.x, held])))
     return scene
