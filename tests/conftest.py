@@ -12,7 +12,7 @@ jax.config.update("jax_enable_x64", True)
 #: longest first. pytest-xdist's ``--dist loadfile`` hands whole modules to its workers
 #: in collection order (with ``--no-loadscope-reorder``, set in pyproject.toml; by default
 #: it orders them by their number of tests), so the long ones start first and the short
-#: ones fill the end (ordered by test count, the workers finished 12 to 25 s apart).
+#: ones fill the end (ordered by test count, the workers finished 25 to 39 s apart).
 #: Unlisted modules go last.
 _MODULE_SECONDS = {
     "test_engine.py": 143,
