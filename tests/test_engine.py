@@ -180,7 +180,7 @@ def test_batched_equals_loop_and_single():
     for b, ls in zip(batched, zip(*loop, strict=True), strict=True):
         np.testing.assert_allclose(b, np.stack(ls), rtol=0, atol=1e-13)
     # A batch this small runs the array program, vmapped: bit for bit program="array".
-    arr = jax.vmap(lambda R: final(R, "array"))(R0)
+    arr = jax.jit(jax.vmap(lambda R: final(R, "array")))(R0)
     np.testing.assert_array_equal(batched[0], arr[0])
     scal = jax.vmap(lambda R: final(R, "scalar"))(R0)  # the scalarized program agrees
     np.testing.assert_allclose(scal[0], batched[0], rtol=0, atol=1e-13)

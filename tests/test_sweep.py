@@ -167,9 +167,8 @@ _SHARDED = textwrap.dedent(
 
 
 def test_two_device_sharded_sweep_equals_single_device(tmp_path):
-    env = dict(
-        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu"
-    )
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2"
+    env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu")
     script = tmp_path / "sharded.py"
     script.write_text(_SHARDED)
     out = subprocess.run(

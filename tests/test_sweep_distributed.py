@@ -96,8 +96,10 @@ def _free_port() -> int:
 def test_two_process_sweep_equals_one_process_and_resumes(tmp_path):
     script = tmp_path / "worker.py"
     script.write_text(_WORKER)
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    env.update(JAX_PLATFORMS="cpu")
+    # One CPU device per process; otherwise the suite's XLA_FLAGS (conftest), so that the
+    # workers compile as the reference below does.
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if "device_count" not in f]
+    env = dict(os.environ, XLA_FLAGS=" ".join(flags), JAX_PLATFORMS="cpu")
     port = _free_port()
     procs = [
         subprocess.Popen(
