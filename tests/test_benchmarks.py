@@ -133,3 +133,15 @@ def test_shared_reference_quick(tmp_path):
     for r in rows:
         assert r["body_steps_per_s"] > 0 and r["speedup"] > 0
         assert r["max_diff_vs_per_run"] < 1e-12  # the same numbers either way
+
+
+@pytest.mark.slow
+def test_emitters_quick(tmp_path):
+    res = _run("emitters.py", tmp_path)
+    assert res["settings"]["older IR emitters"] == {"xla_cpu_use_fusion_emitters": False}
+    names = [r["program"] for r in res["rows"]]
+    assert any("grad" in n for n in names) and any("quadrotor" in n for n in names)
+    for r in res["rows"]:
+        assert r["default_compile_s"] > 0 and r["older_compile_s"] > 0
+        assert r["default_run_s"] > 0 and r["older_run_s"] > 0
+        assert r["max_rel_diff"] < 1e-9  # the same program, to round-off
