@@ -50,32 +50,32 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-#: Modules by their share of the suite's time (seconds on the 2-core CPU, 2026-11-25),
-#: longest first. pytest-xdist's ``--dist loadfile`` hands whole modules to its workers
-#: in collection order (with ``--no-loadscope-reorder``, set in pyproject.toml; by default
-#: it orders them by their number of tests), so the long ones start first and the short
-#: ones fill the end (ordered by test count, the workers finished 25 to 39 s apart).
-#: Unlisted modules go last.
+#: Modules by their share of the suite's time (seconds on the 2-core CPU, 2026-11-25, with
+#: the older emitters above), longest first. pytest-xdist's ``--dist loadfile`` hands whole
+#: modules to its workers in collection order (with ``--no-loadscope-reorder``, set in
+#: pyproject.toml; by default it orders them by their number of tests), so the long ones
+#: start first and the short ones fill the end: the workers finished 7 s apart (5:27 in
+#: all; ordered by test count, 25 to 39 s apart). Unlisted modules go last.
 _MODULE_SECONDS = {
-    "test_engine.py": 143,
-    "test_benchmarks.py": 129,
-    "test_quadrotor.py": 123,
-    "test_notebooks.py": 100,
-    "test_adaptive.py": 83,
-    "test_scalarize.py": 75,
-    "test_sweep.py": 70,
-    "test_tune.py": 67,
-    "test_simulate.py": 52,
-    "test_integrators.py": 51,
-    "test_sweep_outcomes.py": 38,
-    "test_so3_grads.py": 37,
-    "test_ambient.py": 35,
-    "test_scenes_tracking.py": 35,
-    "test_cli.py": 29,
-    "test_so3.py": 22,
-    "test_suslov.py": 22,
-    "test_sweep_params.py": 20,
-    "test_sweep_distributed.py": 18,
+    "test_benchmarks.py": 83,
+    "test_quadrotor.py": 75,
+    "test_engine.py": 61,
+    "test_notebooks.py": 58,
+    "test_adaptive.py": 47,
+    "test_sweep.py": 39,
+    "test_scalarize.py": 37,
+    "test_tune.py": 31,
+    "test_integrators.py": 30,
+    "test_simulate.py": 27,
+    "test_so3_grads.py": 21,
+    "test_cli.py": 19,
+    "test_scenes_tracking.py": 18,
+    "test_ambient.py": 17,
+    "test_suslov.py": 14,
+    "test_sweep_outcomes.py": 13,
+    "test_sweep_params.py": 11,
+    "test_so3.py": 10,
+    "test_sweep_distributed.py": 9,
 }
 
 
