@@ -354,13 +354,34 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
             return out, jax.tree.map(lambda _: True, out)
         try:
             index = sc.cut_index(args) if axis_size >= cut_from else None
-            cut = functools.partial(scalar_fn, cut=index)
-            out = jax.vmap(cut, in_axes=axes)(*args)
+            if what in ("run", "scalar", "tangent", "jacobian") and index is not None:
+                # The forward loop settles its carry's batching up front (`settle_batched`).
+                def cut(one, *a):
+                    return scalar_fn(*a, cut=index, batched=in_batched, one=one)
+
+                one = jnp.zeros((axis_size,), jnp.int32)
+                out = jax.vmap(cut, in_axes=(0, *axes))(one, *args)
+            else:
+                cut = functools.partial(scalar_fn, cut=index)
+                out = jax.vmap(cut, in_axes=axes)(*args)
         except sc.ScalarizeError:
             out = jax.vmap(array_fn, in_axes=axes)(*args)
         return out, jax.tree.map(lambda _: True, out)
 
     return fn
+
+
+def _component_flags(example, batched) -> list:
+    """Per scalar component of ``example`` (in `sc.split` order), its leaf's flag in ``batched``.
+
+    ``batched`` holds one flag per leaf of ``example`` (a `custom_vmap` rule's
+    ``in_batched`` for the same arguments).
+    """
+    return [
+        b
+        for leaf, b in zip(jax.tree.leaves(example), jax.tree.leaves(batched), strict=True)
+        for _ in range(int(np.prod(jnp.shape(leaf), dtype=int)))
+    ]
 
 
 class _Loop:
@@ -420,11 +441,14 @@ class _Loop:
         ys = jax.tree.map(lambda a: a.reshape((S * m,) + a.shape[2:])[: self.n_save], ys)
         return ys, cN
 
-    def fwd_scalar(self, P, c0, cut=None):
+    def fwd_scalar(self, P, c0, cut=None, batched=None, one=None):
         ex = (P, c0)
         body, _ = sc.flat_program(lambda pc: (pc[0], self.step(*pc)), ex, cut)
         obs, obs_struct = sc.flat_program(lambda pc: self.observe(*pc), ex, cut)
-        flat, ys = self._save_loop(body, obs, sc.split(ex))
+        flat = sc.split(ex)
+        if batched is not None:
+            flat = sc.settle_batched(body, flat, _component_flags(ex, batched), one)
+        flat, ys = self._save_loop(body, obs, flat)
         _, cN = sc.join(flat, jax.eval_shape(lambda: ex))
         return sc.join(ys, obs_struct, (self.n_save,)), cN
 
@@ -462,11 +486,14 @@ class _Loop:
         x, dys = self._save_loop(step, functools.partial(self._tobs, mP, mc), (P, c0, dP, dc0))
         return dys, x[3]
 
-    def tan_scalar(self, mP, mc, P, c0, dP, dc0, cut=None):
+    def tan_scalar(self, mP, mc, P, c0, dP, dc0, cut=None, batched=None, one=None):
         ex = (P, c0, dP, dc0)
         body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut)
         tobs, tobs_struct = sc.flat_program(functools.partial(self._tobs, mP, mc), ex, cut)
-        flat, dys = self._save_loop(body, tobs, sc.split(ex))
+        flat = sc.split(ex)
+        if batched is not None:
+            flat = sc.settle_batched(body, flat, _component_flags(ex, batched), one)
+        flat, dys = self._save_loop(body, tobs, flat)
         x = sc.join(flat, jax.eval_shape(lambda: ex))
         return sc.join(dys, tobs_struct, (self.n_save,)), x[3]
 
@@ -496,15 +523,15 @@ class _Loop:
         x, (ys, dys) = self._save_loop(body, observe, (P, c0, dP, dc0))
         return ys, x[1], dys, x[3]
 
-    def jac_scalar(self, mP, mc, P, c0, dP, dc0, cut=None):
+    def jac_scalar(self, mP, mc, P, c0, dP, dc0, cut=None, batched=None, one=None):
         """`jac_array` as a scalarized program: tangent components are ``(n,)`` arrays."""
-        one = jax.tree.map(lambda a: a[0], (dP, dc0))  # one column: the example
-        ex = (P, c0) + one
+        col = jax.tree.map(lambda a: a[0], (dP, dc0))  # one column: the example
+        ex = (P, c0) + col
         body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut)
         tobs, tobs_struct = sc.flat_program(functools.partial(self._tobs, mP, mc), ex, cut)
         obs, obs_struct = sc.flat_program(lambda x: self.observe(x[0], x[1]), ex, cut)
         n_primal = len(sc.split((P, c0)))
-        n_tangent = sum(math.prod(jnp.shape(a)) for a in jax.tree.leaves(one))
+        n_tangent = sum(math.prod(jnp.shape(a)) for a in jax.tree.leaves(col))
         axes = [None] * n_primal + [0] * n_tangent
         vbody = jax.vmap(body, in_axes=(axes,), out_axes=axes)
         vtobs = jax.vmap(tobs, in_axes=(axes,))
@@ -513,10 +540,13 @@ class _Loop:
             return obs(flat), vtobs(flat)
 
         flat0 = sc.split((P, c0)) + jax.vmap(sc.split)((dP, dc0))
+        if batched is not None:  # a column's components: the body's example
+            flags = _component_flags(ex, batched)
+            flat0 = sc.settle_batched(body, flat0, flags, one, [jnp.result_type(x) for x in flat0])
         flat, (ys, dys) = self._save_loop(vbody, observe, flat0)
         _, cN = sc.join(flat[:n_primal], jax.eval_shape(lambda: (P, c0)))
         n = jnp.shape(jax.tree.leaves((dP, dc0))[0])[0]
-        _, dcN = sc.join(flat[n_primal:], jax.eval_shape(lambda: one), (n,))
+        _, dcN = sc.join(flat[n_primal:], jax.eval_shape(lambda: col), (n,))
         ys = sc.join(ys, obs_struct, (self.n_save,))
         return ys, cN, sc.join(dys, tobs_struct, (self.n_save, n)), dcN
 

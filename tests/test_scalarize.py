@@ -196,3 +196,48 @@ def test_fusion_cuts_keep_values_and_survive_compilation():
     xs_nan = xs.at[0, 0].set(jnp.nan)
     out = np.asarray(cut(xs_nan))
     np.testing.assert_allclose(out[1:], np.asarray(ref[1:]), rtol=1e-14, atol=1e-14)
+
+
+def test_settle_batched_reaches_the_scan_fixed_point_and_keeps_shared_values():
+    """Carry components are batched up front exactly where a loop would batch them.
+
+    Under `vmap`, ``a`` is batched; ``c`` depends on it after one step and ``b`` after
+    two (JAX's scan would batch its body three times to find that); ``d`` never does
+    and must stay unbatched (like a reference attitude shared by a batch).
+    """
+    from so3jax import _scalarize as sc
+
+    def step(x):
+        a, b, c, d = x
+        return (0.5 * a + 1.0, b + c * c, c + jnp.sin(a), 2.0 * d - 1.0)
+
+    ex = tuple(jnp.asarray(v) for v in (1.0, 2.0, 3.0, 4.0))
+    index = jnp.asarray(0, jnp.int32)  # a cut index: the cut path of flat_program
+    run, _ = sc.flat_program(step, ex, index, cut_cone=2)
+
+    def loop(a, one, settle):
+        flat = sc.split((a, *ex[1:]))
+        if settle:
+            flat = sc.settle_batched(run, flat, [True, False, False, False], one)
+        return jax.lax.scan(lambda f, _: (run(f), None), flat, None, length=5)[0]
+
+    flat = sc.split(ex)
+    assert sc.batched_components(run, flat, [True, False, False, False]) == [1, 1, 1, 0]
+    assert sc.batched_components(run, flat, [False, False, False, True]) == [0, 0, 0, 1]
+    plain_run, _ = sc.flat_program(step, ex)  # no cuts: nothing to settle
+    assert sc.batched_components(plain_run, flat, [True] * 4) is None
+    A = jnp.linspace(0.1, 0.9, 6)
+    one = jnp.zeros(6, jnp.int32)
+    got = jax.vmap(lambda a, o: loop(a, o, True))(A, one)
+    plain = jax.vmap(lambda a, o: loop(a, o, False))(A, one)
+    for g, p in zip(got, plain, strict=True):
+        np.testing.assert_array_equal(g, p)
+    x = (A, *(jnp.full(6, v) for v in ex[1:]))  # a Python loop of the step
+    for _ in range(5):
+        x = step(x)
+    for g, r in zip(got, x, strict=True):
+        np.testing.assert_allclose(g, r, rtol=1e-14)
+    jaxpr = jax.make_jaxpr(jax.vmap(lambda a, o: loop(a, o, True)))(A, one)
+    (scan,) = [e for e in jaxpr.eqns if e.primitive.name == "scan"]
+    carry = [v.aval.shape for v in scan.outvars]
+    assert carry == [(6,), (6,), (6,), ()], carry  # batched once, d still shared
