@@ -355,7 +355,8 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
         try:
             index = sc.cut_index(args) if axis_size >= cut_from else None
             if what in ("run", "scalar", "tangent", "jacobian") and index is not None:
-                # The forward loop settles its carry's batching up front (`settle_batched`).
+                # The forward, tangent and Jacobian loops settle their carry's batching up
+                # front (`sc.settle_batched`); the adjoint's backward scan does not.
                 def cut(one, *a):
                     return scalar_fn(*a, cut=index, batched=in_batched, one=one)
 
@@ -380,7 +381,7 @@ def _component_flags(example, batched) -> list:
     return [
         b
         for leaf, b in zip(jax.tree.leaves(example), jax.tree.leaves(batched), strict=True)
-        for _ in range(int(np.prod(jnp.shape(leaf), dtype=int)))
+        for _ in range(math.prod(jnp.shape(leaf)))
     ]
 
 

@@ -10,7 +10,7 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 #: emitters" (its default since 2025) and the older LLVM IR emitters. Measured on this
 #: suite's 2-core CPU (2026-11-25), the older ones compile the library's programs 1.2 to
 #: 1.6x faster and run them as fast or faster; the suite spends most of its time in XLA's
-#: compiler, and took 6:40 against 9:36 with them. The tests therefore run with them
+#: compiler, and took 6:35 against 9:36 with them. The tests therefore run with them
 #: (every worker and notebook kernel inherits this process's XLA_FLAGS), unless
 #: SO3JAX_TEST_XLA_DEFAULTS=1 asks for XLA's own defaults or a jaxlib no longer knows the
 #: flag. Results agree to round-off either way; nothing in the library depends on it.
