@@ -257,7 +257,8 @@ def run_chunked(scene, method, dt: float, n_steps: int, save_every: int, progres
         arrays = [get(p) for p in parts]
         if arrays[0] is None:
             return None
-        return jnp.asarray(np.concatenate([arrays[0]] + [a[1:] for a in arrays[1:]]))
+        arrays = [np.asarray(a) for a in arrays]
+        return jax.device_put(np.concatenate([arrays[0]] + [a[1:] for a in arrays[1:]]))
 
     extras = {k: cat(k, lambda p, k=k: p.extras[k]) for k in parts[0].extras}
     traj = Trajectory(

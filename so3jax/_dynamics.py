@@ -5,6 +5,7 @@ from __future__ import annotations
 import warnings
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -33,14 +34,13 @@ class RigidBody(eqx.Module):
 
     def __init__(self, inertia: ArrayLike):
         J = _as_float(inertia)
-        if J.shape == (3,):
-            J = jnp.diag(J)
-        if J.shape != (3, 3):
+        if J.shape not in ((3,), (3, 3)):
             raise ValueError(
                 f"inertia must be a (3, 3) matrix or 3 principal moments, got shape {J.shape}"
             )
         if _is_concrete(J):
             Jn = np.asarray(J, dtype=np.float64)
+            Jn = np.diag(Jn) if Jn.shape == (3,) else Jn
             if not np.all(np.isfinite(Jn)):
                 raise ValueError("inertia contains NaN or inf")
             scale = max(np.abs(Jn).max(), np.finfo(np.float64).tiny)
@@ -58,8 +58,7 @@ class RigidBody(eqx.Module):
                     "J1 + J2 >= J3; no physical rigid body has them",
                     stacklevel=2,
                 )
-        self.inertia = 0.5 * (J + J.T)
-        self.inertia_inv = jnp.linalg.inv(self.inertia)
+        self.inertia, self.inertia_inv = _inertia_matrices(J)
 
     def euler_rhs(self, Omega: Vec3, M: Vec3 | None = None) -> Vec3:
         """Angular acceleration ``Omega' = J^-1 (M - Omega x J Omega)``.
@@ -97,3 +96,17 @@ class RigidBody(eqx.Module):
     def omega_from_momentum(self, Pi: Vec3) -> Vec3:
         """``Omega = J^-1 Pi``."""
         return _mv(self.inertia_inv, Pi)
+
+
+@jax.jit
+def _inertia_matrices(J):
+    """``(J, J^-1)`` for principal moments or a matrix (symmetrised): one compiled call.
+
+    Eagerly, the same operations compiled one program each on first use, LAPACK's
+    inverse among them (0.15 s); principal moments need none (``1 / J_i`` is what
+    the LU inverse of a diagonal matrix gives, to the bit).
+    """
+    if J.shape == (3,):
+        return jnp.diag(J), jnp.diag(1 / J)
+    J = 0.5 * (J + J.T)
+    return J, jnp.linalg.inv(J)

@@ -628,15 +628,16 @@ class Quadrotor(Scene):
 
 def _vector_arg(value, name: str, dtype) -> Array:
     a = _as_float(value)
-    if a.shape == ():
-        a = jnp.broadcast_to(a, (3,))
-    if a.shape != (3,):
+    if a.shape not in ((), (3,)):
         raise ValueError(
             f"{name} must be a 3-vector (or a scalar for all three), got shape {a.shape}"
         )
-    if _is_concrete(a) and not np.all(np.isfinite(np.asarray(a))):
+    if not _is_concrete(a):
+        return jnp.broadcast_to(a, (3,)).astype(dtype)
+    an = np.asarray(a)  # NumPy: an eager JAX broadcast and cast compile on first use
+    if not np.all(np.isfinite(an)):
         raise ValueError(f"{name} contains NaN or inf")
-    return a.astype(dtype)
+    return jax.device_put(np.broadcast_to(an, (3,)).astype(dtype))
 
 
 def quadrotor(
@@ -683,14 +684,14 @@ def quadrotor(
     of a quadrotor UAV on SE(3)", CDC 2010.
     """
     if R0 is None:
-        R0 = jnp.eye(3, dtype=jnp.result_type(float))
+        R0 = np.eye(3, dtype=jnp.result_type(float))
     R0 = check_rotation(R0, "R0")
     dtype = R0.dtype
-    m = _check_scalar(mass, "mass", positive=True).astype(dtype)
-    g = _check_scalar(g, "g", positive=False).astype(dtype)
+    m = _cast_floats(_check_scalar(mass, "mass", positive=True), dtype)
+    g = _cast_floats(_check_scalar(g, "g", positive=False), dtype)
     body = inertia if isinstance(inertia, RigidBody) else RigidBody(inertia)
     if body.inertia.dtype != dtype:
-        body = RigidBody(body.inertia.astype(dtype))
+        body = RigidBody(_cast_floats(body.inertia, dtype))
     if not isinstance(gains, QuadrotorGains):
         raise TypeError(f"gains must be a QuadrotorGains, got {type(gains).__name__}")
     gains = _cast_floats(gains, dtype)
@@ -701,15 +702,27 @@ def quadrotor(
     Omega0 = _vector_arg(Omega0, "Omega0", dtype)
     T = None
     if control_period is not None:
-        T = _check_scalar(control_period, "control_period", positive=True).astype(dtype)
+        T = _cast_floats(_check_scalar(control_period, "control_period", positive=True), dtype)
     vehicle = QuadrotorVehicle(mass=m, body=body, g=g)
-    y0 = LieState(R0[None], jnp.concatenate([Omega0, x0, v0]))
+    y0 = _quadrotor_state(R0, Omega0, x0, v0)
     scene = Quadrotor(vehicle=vehicle, gains=gains, reference=reference, y0=y0, control_period=T)
     if T is not None:
-        c = _sample_control(scene, jnp.zeros((), dtype), y0)
-        held = jnp.concatenate([c.f[None], c.M, jnp.zeros(1, dtype)])
-        scene = eqx.tree_at(lambda s: s.y0, scene, LieState(y0.R, jnp.concatenate([y0.x, held])))
+        scene = eqx.tree_at(lambda s: s.y0, scene, _hold_initial_control(scene))
     return scene
+
+
+@jax.jit
+def _quadrotor_state(R0, Omega0, x0, v0) -> LieState:
+    return LieState(R0[None], jnp.concatenate([Omega0, x0, v0]))
+
+
+@eqx.filter_jit
+def _hold_initial_control(scene: Quadrotor) -> LieState:
+    """The initial state with the control sampled at ``t = 0`` held (one compiled call)."""
+    y0 = scene.y0
+    c = _control_of(scene, jnp.zeros((), y0.x.dtype), y0)
+    held = jnp.concatenate([c.f[None], c.M, jnp.zeros(1, y0.x.dtype)])
+    return LieState(y0.R, jnp.concatenate([y0.x, held]))
 
 
 # --------------------------------------------------------------------------
@@ -722,8 +735,9 @@ def _float_dtype(dtype):
 
 
 def _difftune_vehicle_gains(dtype):
-    k_x, k_v, k_R, k_O = (jnp.full(3, k, dtype) for k in DIFFTUNE_GAINS)
-    return jnp.asarray(DIFFTUNE_INERTIA, dtype), QuadrotorGains(k_x, k_v, k_R, k_O)
+    # NumPy constants: eager JAX ones compile a program each on first use.
+    k_x, k_v, k_R, k_O = (np.full(3, k, dtype) for k in DIFFTUNE_GAINS)
+    return np.asarray(DIFFTUNE_INERTIA, dtype), QuadrotorGains(k_x, k_v, k_R, k_O)
 
 
 def quadrotor_circle(
@@ -750,12 +764,12 @@ def quadrotor_circle(
     dtype = _float_dtype(dtype)
     J, g0 = _difftune_vehicle_gains(dtype)
     return quadrotor(
-        jnp.asarray(DIFFTUNE_MASS, dtype),
+        np.asarray(DIFFTUNE_MASS, dtype),
         J,
         g0 if gains is None else gains,
         CircleReference(2.0, 1.0, 0.1),
-        R0=jnp.eye(3, dtype=dtype),
-        Omega0=jnp.asarray([0.0, 0.0, 0.001], dtype),
+        R0=np.eye(3, dtype=dtype),
+        Omega0=np.asarray([0.0, 0.0, 0.001], dtype),
         control_period=control_period,
     )
 
@@ -773,12 +787,12 @@ def quadrotor_recovery(control_period=None, dtype=None) -> Quadrotor:
 
     dtype = _float_dtype(dtype)
     J, gains = _difftune_vehicle_gains(dtype)
-    R0 = project(jnp.asarray(RECOVERY_R0, dtype))
+    R0 = project(np.asarray(RECOVERY_R0, dtype))
     return quadrotor(
-        jnp.asarray(DIFFTUNE_MASS, dtype),
+        np.asarray(DIFFTUNE_MASS, dtype),
         J,
         gains,
-        HoverReference(jnp.zeros(3, dtype)),
+        HoverReference(np.zeros(3, dtype)),
         R0=R0,
         control_period=control_period,
     )
@@ -793,11 +807,11 @@ def quadrotor_flip(control_period=None, dtype=None) -> Quadrotor:
     dtype = _float_dtype(dtype)
     J, gains = _difftune_vehicle_gains(dtype)
     return quadrotor(
-        jnp.asarray(DIFFTUNE_MASS, dtype),
+        np.asarray(DIFFTUNE_MASS, dtype),
         J,
         gains,
         FlipReference(),
-        R0=jnp.eye(3, dtype=dtype),
+        R0=np.eye(3, dtype=dtype),
         control_period=control_period,
     )
 

@@ -22,7 +22,7 @@ from ._control import (
 )
 from ._dynamics import RigidBody
 from ._scene import MechanicalScene, check_rotation, check_vector
-from ._so3 import _exp, from_euler_zyx
+from ._so3 import _exp_jit, from_euler_zyx
 from ._state import LieState
 from ._types import ArrayLike
 
@@ -148,7 +148,19 @@ class Tracking(MechanicalScene):
 
 
 def _cast_floats(tree, dtype):
-    return jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, tree)
+    """Every float array of ``tree`` as a (strongly typed) array of ``dtype``.
+
+    Concrete arrays are cast in NumPy: an eager JAX cast compiles on first use.
+    """
+
+    def cast(a):
+        if not eqx.is_inexact_array(a):
+            return a
+        if isinstance(a, jax.core.Tracer):
+            return a.astype(dtype)
+        return jax.device_put(np.asarray(a).astype(dtype))
+
+    return jax.tree.map(cast, tree)
 
 
 def _check_reference(
@@ -225,9 +237,15 @@ def tracking(
     reference = ConstantRate() if reference is None else reference
     reference = _cast_floats(reference, dtype)
     _check_reference(reference, dtype)
-    memory = controller.init_memory(R0, Rd0).astype(dtype)
-    y0 = LieState(jnp.stack([R0, Rd0]), jnp.concatenate([Omega0, memory]))
+    y0 = _tracking_state(controller, R0, Rd0, Omega0)
     return Tracking(body=body, controller=controller, reference=reference, y0=y0)
+
+
+@eqx.filter_jit
+def _tracking_state(controller, R0, Rd0, Omega0) -> LieState:
+    """The initial state of a tracking scene (one compiled call when built eagerly)."""
+    memory = controller.init_memory(R0, Rd0).astype(R0.dtype)
+    return LieState(jnp.stack([R0, Rd0]), jnp.concatenate([Omega0, memory]))
 
 
 def _float_dtype(dtype):
@@ -250,14 +268,14 @@ def seed(dtype=None) -> Tracking:
     **Returns:** a `Tracking` scene.
     """
     dtype = _float_dtype(dtype)
-    pi = jnp.asarray(math.pi, dtype)
+    pi = np.asarray(math.pi, dtype)  # NumPy: no eager JAX operations to compile
     R0 = from_euler_zyx(pi / 3, -pi / 4, pi / 6)
     return tracking(
-        jnp.asarray(SEED_INERTIA, dtype),
+        np.asarray(SEED_INERTIA, dtype),
         GeometricGains(*SEED_GAINS),
         R0,
-        jnp.zeros(3, dtype),
-        jnp.eye(3, dtype=dtype),
+        np.zeros(3, dtype),
+        np.eye(3, dtype=dtype),
         SinusoidalRate(),
     )
 
@@ -281,14 +299,14 @@ def near_pi(angle: float = math.pi - 0.01, controller=None, dtype=None) -> Track
     **Returns:** a `Tracking` scene.
     """
     dtype = _float_dtype(dtype)
-    R0 = _exp(jnp.asarray([0.0, 0.0, angle], dtype))
+    R0 = _exp_jit(np.asarray([0.0, 0.0, angle], dtype))
     controller = GeometricGains(*SEED_GAINS) if controller is None else controller
     return tracking(
-        jnp.asarray(SEED_INERTIA, dtype),
+        np.asarray(SEED_INERTIA, dtype),
         controller,
         R0,
-        jnp.zeros(3, dtype),
-        jnp.eye(3, dtype=dtype),
+        np.zeros(3, dtype),
+        np.eye(3, dtype=dtype),
         ConstantRate(),
     )
 
@@ -328,11 +346,11 @@ def unwinding(hysteresis: bool = False, delta: float = 0.2, dtype=None) -> Track
     k_R, k_Omega = SEED_GAINS
     ctrl = QuaternionController(2 * k_R, k_Omega, delta=delta, hysteresis=hysteresis)
     return tracking(
-        jnp.asarray(SEED_INERTIA, dtype),
+        np.asarray(SEED_INERTIA, dtype),
         ctrl,
-        _exp(jnp.asarray([0.0, 0.0, UNWINDING_ANGLE], dtype)),
-        jnp.asarray([0.0, 0.0, UNWINDING_RATE], dtype),
-        jnp.eye(3, dtype=dtype),
+        _exp_jit(np.asarray([0.0, 0.0, UNWINDING_ANGLE], dtype)),
+        np.asarray([0.0, 0.0, UNWINDING_RATE], dtype),
+        np.eye(3, dtype=dtype),
         ConstantRate(),
     )
 
@@ -369,6 +387,6 @@ def dzhanibekov(
         raise ValueError(
             f"inertia must be 3 principal moments J1 < J2 < J3 (e2 intermediate), got {Jn}"
         )
-    J = jnp.asarray(inertia, dtype)
-    Omega0 = jnp.asarray([perturbation * spin, spin, perturbation * spin], dtype)
-    return free_body(J, jnp.eye(3, dtype=dtype), Omega0)
+    J = np.asarray(inertia, dtype)
+    Omega0 = np.asarray([perturbation * spin, spin, perturbation * spin], dtype)
+    return free_body(J, np.eye(3, dtype=dtype), Omega0)

@@ -42,7 +42,11 @@ def _is_concrete(x) -> bool:
 
 
 def _as_float(x: ArrayLike) -> Array:
-    x = jnp.asarray(x)
+    # NumPy values, Python floats and flat sequences of them go to the device as they
+    # are: `jnp.asarray` compiles a program for every new shape on first use (JAX 0.10).
+    if isinstance(x, list | tuple) and x and all(isinstance(v, float) for v in x):
+        x = np.asarray(x)
+    x = jax.device_put(x) if isinstance(x, np.ndarray | np.generic | float) else jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     return x
@@ -311,6 +315,15 @@ def _vee(W: Array) -> Array:
     )
 
 
+# Jitted cores behind the public functions: an eager call then runs one compiled
+# program instead of dozens of dispatched operations, each compiled on its first use
+# (checks stay outside). Every public function below has one.
+_hat_jit = jax.jit(_hat)
+_vee_jit = jax.jit(_vee)
+_cross_jit = jax.jit(_cross)
+_mv_jit = jax.jit(_mv)
+
+
 def hat(w: Vec3) -> Mat3:
     """Skew-symmetric matrix of a vector: ``hat(w) @ v = w x v``.
 
@@ -320,7 +333,7 @@ def hat(w: Vec3) -> Mat3:
 
     **Returns:** skew-symmetric matrix, shape `(..., 3, 3)`.
     """
-    return _hat(_prep(w, "w", (3,)))
+    return _hat_jit(_prep(w, "w", (3,)))
 
 
 def vee(W: Mat3) -> Vec3:
@@ -335,7 +348,7 @@ def vee(W: Mat3) -> Vec3:
 
     **Returns:** vector, shape `(..., 3)`.
     """
-    return _vee(_prep(W, "W", (3, 3)))
+    return _vee_jit(_prep(W, "W", (3, 3)))
 
 
 def bracket(x: Vec3, y: Vec3) -> Vec3:
@@ -347,7 +360,7 @@ def bracket(x: Vec3, y: Vec3) -> Vec3:
 
     **Returns:** ``x cross y``, shape `(..., 3)`.
     """
-    return _cross(_prep(x, "x", (3,)), _prep(y, "y", (3,)))
+    return _cross_jit(_prep(x, "x", (3,)), _prep(y, "y", (3,)))
 
 
 def adjoint(R: Rot, w: Vec3) -> Vec3:
@@ -362,7 +375,7 @@ def adjoint(R: Rot, w: Vec3) -> Vec3:
 
     **Returns:** ``R w``, shape `(..., 3)`.
     """
-    return _mv(_prep(R, "R", (3, 3)), _prep(w, "w", (3,)))
+    return _mv_jit(_prep(R, "R", (3, 3)), _prep(w, "w", (3,)))
 
 
 def coadjoint(R: Rot, M: Vec3) -> Vec3:
@@ -378,7 +391,7 @@ def coadjoint(R: Rot, M: Vec3) -> Vec3:
 
     **Returns:** ``R M``, shape `(..., 3)`.
     """
-    return _mv(_prep(R, "R", (3, 3)), _prep(M, "M", (3,)))
+    return _mv_jit(_prep(R, "R", (3, 3)), _prep(M, "M", (3,)))
 
 
 # --------------------------------------------------------------------------
@@ -396,8 +409,6 @@ def _exp(w: Array) -> Array:
     return (1.0 - B * t[..., None, None]) * eye + A * _hat(w) + B * wwT
 
 
-# Jitted cores behind the public functions: an eager call then runs one compiled
-# program instead of dozens of dispatched operations (checks stay outside).
 _exp_jit = jax.jit(_exp)
 
 
@@ -824,8 +835,11 @@ def quat_multiply(p: Quat, q: Quat) -> Quat:
 
     **Returns:** shape `(..., 4)`.
     """
-    p = _prep(p, "p", (4,))
-    q = _prep(q, "q", (4,))
+    return _quat_multiply(_prep(p, "p", (4,)), _prep(q, "q", (4,)))
+
+
+@jax.jit
+def _quat_multiply(p: Array, q: Array) -> Array:
     pw, pv = p[..., :1], p[..., 1:]
     qw, qv = q[..., :1], q[..., 1:]
     w = pw * qw - _dot(pv, qv)[..., None]
@@ -845,11 +859,15 @@ def from_axis_angle(axis: Vec3, angle: Scalar) -> Rot:
     """
     axis = _prep(axis, "axis", (3,))
     angle = _prep(angle, "angle", ())
-    n2 = _dot(axis, axis)
     if _is_concrete(axis) and np.any(_np_norm2(axis) == 0):
         raise ValueError("axis has zero norm; give a non-zero rotation axis")
-    u = axis / jnp.sqrt(n2)[..., None]
-    return _exp_jit(u * angle[..., None])
+    return _from_axis_angle(axis, angle)
+
+
+@jax.jit
+def _from_axis_angle(axis: Array, angle: Array) -> Array:
+    u = axis / jnp.sqrt(_dot(axis, axis))[..., None]
+    return _exp(u * angle[..., None])
 
 
 def to_axis_angle(R: Rot) -> tuple[Vec3, Scalar]:
@@ -863,7 +881,12 @@ def to_axis_angle(R: Rot) -> tuple[Vec3, Scalar]:
 
     **Returns:** ``(axis, angle)`` with shapes `(..., 3)` and `(...)`.
     """
-    w = log(R)
+    return _to_axis_angle(_prep(R, "R", (3, 3)))
+
+
+@jax.jit
+def _to_axis_angle(R: Array) -> tuple[Array, Array]:
+    w = _log_from_quat(_to_quat(R))
     t = _dot(w, w)
     zero = t == 0
     th = jnp.sqrt(jnp.where(zero, 1.0, t))
@@ -898,7 +921,15 @@ def from_euler_zyx(phi: Scalar, theta: Scalar, psi: Scalar) -> Rot:
 
     **Returns:** rotation matrix, shape `(..., 3, 3)`.
     """
-    phi, theta, psi = (_prep(a, n, ()) for a, n in ((phi, "phi"), (theta, "theta"), (psi, "psi")))
+    return _from_euler_zyx(*_prep_angles(phi, theta, psi))
+
+
+def _prep_angles(phi, theta, psi) -> tuple[Array, Array, Array]:
+    return tuple(_prep(a, n, ()) for a, n in ((phi, "phi"), (theta, "theta"), (psi, "psi")))
+
+
+@jax.jit
+def _from_euler_zyx(phi: Array, theta: Array, psi: Array) -> Array:
     phi, theta, psi = jnp.broadcast_arrays(phi, theta, psi)
     return _rz_ry_rx(
         jnp.cos(phi), jnp.sin(phi), jnp.cos(theta), jnp.sin(theta), jnp.cos(psi), jnp.sin(psi)
@@ -920,7 +951,11 @@ def to_euler_zyx(R: Rot) -> tuple[Scalar, Scalar, Scalar]:
 
     **Returns:** ``(phi, theta, psi)``, each of shape `(...)`.
     """
-    R = _prep(R, "R", (3, 3))
+    return _to_euler_zyx(_prep(R, "R", (3, 3)))
+
+
+@jax.jit
+def _to_euler_zyx(R: Array) -> tuple[Array, Array, Array]:
     R00, R10, R20 = R[..., 0, 0], R[..., 1, 0], R[..., 2, 0]
     c2 = R00 * R00 + R10 * R10
     tiny = jnp.finfo(R.dtype).tiny
@@ -949,7 +984,11 @@ def is_gimbal_locked(R: Rot, atol: float = 1e-6) -> Array:
 
     **Returns:** boolean array, shape `(...)`.
     """
-    R = _prep(R, "R", (3, 3))
+    return _is_gimbal_locked(_prep(R, "R", (3, 3)), atol)
+
+
+@jax.jit
+def _is_gimbal_locked(R: Array, atol) -> Array:
     return R[..., 0, 0] ** 2 + R[..., 1, 0] ** 2 <= atol**2
 
 
@@ -965,7 +1004,11 @@ def euler_zyx_rate_matrix(phi: Scalar, theta: Scalar, psi: Scalar) -> Mat3:
 
     **Returns:** shape `(..., 3, 3)`.
     """
-    phi, theta, psi = (_prep(a, n, ()) for a, n in ((phi, "phi"), (theta, "theta"), (psi, "psi")))
+    return _euler_zyx_rate_matrix(*_prep_angles(phi, theta, psi))
+
+
+@jax.jit
+def _euler_zyx_rate_matrix(phi: Array, theta: Array, psi: Array) -> Array:
     phi, theta, psi = jnp.broadcast_arrays(phi, theta, psi)
     cth, sth, cpsi, spsi = jnp.cos(theta), jnp.sin(theta), jnp.cos(psi), jnp.sin(psi)
     z, o = jnp.zeros_like(theta), jnp.ones_like(theta)
@@ -1050,9 +1093,13 @@ def random_rotation(key, shape: tuple[int, ...] = (), dtype=None) -> Rot:
     """
     if isinstance(shape, int):
         shape = (shape,)
-    dtype = jnp.result_type(float) if dtype is None else dtype
-    q = jax.random.normal(key, tuple(shape) + (4,), dtype=dtype)
-    return _from_quat(q)
+    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    return _random_rotation(key, tuple(shape), dtype)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _random_rotation(key, shape: tuple[int, ...], dtype) -> Array:
+    return _from_quat(jax.random.normal(key, shape + (4,), dtype=dtype))
 
 
 def geodesic_distance(R1: Rot, R2: Rot) -> Scalar:
@@ -1064,8 +1111,11 @@ def geodesic_distance(R1: Rot, R2: Rot) -> Scalar:
 
     **Returns:** angle in radians, shape `(...)`.
     """
-    R1 = _prep(R1, "R1", (3, 3))
-    R2 = _prep(R2, "R2", (3, 3))
+    return _geodesic_distance(_prep(R1, "R1", (3, 3)), _prep(R2, "R2", (3, 3)))
+
+
+@jax.jit
+def _geodesic_distance(R1: Array, R2: Array) -> Array:
     q = _to_quat(_mm(_mT(R1), R2))
     n2 = _dot(q[..., 1:], q[..., 1:])
     # Test `n2 == 0` rather than `n2 > 0` so that NaN input (under jit) gives NaN, not 0.
@@ -1088,8 +1138,11 @@ def attitude_error_function(R: Rot, Rd: Rot) -> Scalar:
     References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control
     of a quadrotor UAV on SE(3)", CDC 2010.
     """
-    R = _prep(R, "R", (3, 3))
-    Rd = _prep(Rd, "Rd", (3, 3))
+    return _attitude_error_function(_prep(R, "R", (3, 3)), _prep(Rd, "Rd", (3, 3)))
+
+
+@jax.jit
+def _attitude_error_function(R: Array, Rd: Array) -> Array:
     return 0.5 * (3.0 - jnp.sum(Rd * R, axis=(-1, -2)))
 
 
@@ -1102,6 +1155,10 @@ def orthogonality_error(R: Rot) -> Scalar:
 
     **Returns:** shape `(...)`.
     """
-    R = _prep(R, "R", (3, 3))
+    return _orthogonality_error(_prep(R, "R", (3, 3)))
+
+
+@jax.jit
+def _orthogonality_error(R: Array) -> Array:
     E = _mm(_mT(R), R) - jnp.eye(3, dtype=R.dtype)
     return jnp.sqrt(jnp.sum(E * E, axis=(-1, -2)))

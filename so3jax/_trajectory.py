@@ -9,7 +9,9 @@ from __future__ import annotations
 import operator
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._so3 import _is_concrete
 from ._state import LieState
@@ -113,11 +115,12 @@ def _check_int(value, name: str, minimum: int) -> int:
 
 
 def _check_dt(dt, dtype) -> Array:
-    dt = jnp.asarray(dt, dtype=dtype)
+    # A concrete step goes through NumPy: an eager JAX cast compiles on first use.
+    dt = jax.device_put(np.asarray(dt, dtype)) if _is_concrete(dt) else jnp.asarray(dt, dtype)
     if dt.shape != ():
         raise ValueError(f"dt must be a scalar, got shape {dt.shape}")
     if _is_concrete(dt):
-        if not bool(jnp.isfinite(dt)) or float(dt) <= 0:
+        if not np.isfinite(float(dt)) or float(dt) <= 0:
             raise ValueError(f"dt must be positive and finite, got {float(dt)}")
     else:
         dt = eqx.error_if(dt, ~(dt > 0), "dt must be positive and finite")

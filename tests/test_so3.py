@@ -988,6 +988,25 @@ def test_constants_inside_traced_control_flow(name):
     jax.eval_shape(lambda: jax.lax.cond(True, lambda: fn(*args), lambda: fn(*args)))
 
 
+@pytest.mark.parametrize(
+    "x",
+    [8.81, np.float64(1.5), np.float32(1.5), np.ones(3, np.float32), np.eye(3), (0.0, 2.0),
+     [0.5, 0.2, 0.1], [1, 2, 3], (1.0, 2), np.int64(3), jnp.ones(3, jnp.float32), True],
+    ids=repr,
+)
+def test_as_float_matches_jnp_asarray(x):
+    """NumPy and Python input skips `jnp.asarray` (a compilation per new shape), same result."""
+    from so3jax._so3 import _as_float
+
+    ref = jnp.asarray(x)
+    if not jnp.issubdtype(ref.dtype, jnp.floating):
+        ref = ref.astype(jnp.result_type(float))
+    got = _as_float(x)
+    assert isinstance(got, jax.Array)
+    assert (got.dtype, got.weak_type, got.shape) == (ref.dtype, ref.weak_type, ref.shape)
+    np.testing.assert_array_equal(got, ref)
+
+
 def test_import_does_not_enable_x64():
     env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
     code = "import so3jax, jax; print(jax.config.jax_enable_x64)"
