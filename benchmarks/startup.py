@@ -113,6 +113,14 @@ def _child(entry: str, path: str | None) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def _label(path: str) -> str:
+    """``baseline <commit>`` when ``path`` is a git checkout."""
+    out = subprocess.run(
+        ["git", "-C", path, "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    )
+    return f"baseline {out.stdout.strip()}" if out.returncode == 0 else "baseline"
+
+
 def main():
     def extra(p):
         p.add_argument("--baseline", default=None, help="a checkout whose so3jax is the baseline")
@@ -120,7 +128,7 @@ def main():
     args = C.parse_args(__doc__.splitlines()[0], extra)
     entries = ["scenes.seed()"] if args.quick else list(ENTRIES)
     repeats = 1 if args.quick else args.repeats
-    codes = {"current": None} | ({"baseline": args.baseline} if args.baseline else {})
+    codes = {"current": None} | ({_label(args.baseline): args.baseline} if args.baseline else {})
     runs = {(e, c): [] for e in entries for c in codes}
     for _ in C.progress(range(repeats), "repeats"):
         for e in entries:
@@ -141,7 +149,7 @@ def main():
                 "repeats": len(rs),
             }
         )
-    base = {r["entry"]: r["cold_s"] for r in rows if r["code"] == "baseline"}
+    base = {r["entry"]: r["cold_s"] for r in rows if r["code"].startswith("baseline")}
     for row in rows:
         b = base.get(row["entry"])
         row["speedup_vs_baseline"] = b / row["cold_s"] if b else None
