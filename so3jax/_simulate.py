@@ -10,6 +10,7 @@ from ._adaptive import simulate_adaptive
 from ._engine import run
 from ._integrators import AbstractLieSolver
 from ._scene import Scene, check_rotation, check_vector
+from ._so3 import _to_dtype
 from ._state import LieState, all_finite
 from ._trajectory import (
     NONFINITE,
@@ -246,7 +247,7 @@ def simulate_from(
     """
     dtype = scene.y0.R.dtype
     dt = _check_dt(dt, dtype)
-    t0 = jnp.asarray(t0, dtype=dtype)
+    t0 = _to_dtype(t0, dtype)
     scene = scene.for_step(dt, t0)
     n_save = n_steps // save_every
     program = _program(scalarize)

@@ -52,6 +52,11 @@ def _as_float(x: ArrayLike) -> Array:
     return x
 
 
+def _to_dtype(x: ArrayLike, dtype) -> Array:
+    """``jnp.asarray(x, dtype)``, in NumPy when ``x`` is concrete (no program to compile)."""
+    return jax.device_put(np.asarray(x, dtype)) if _is_concrete(x) else jnp.asarray(x, dtype)
+
+
 def _prep(x: ArrayLike, name: str, trailing: tuple[int, ...]) -> Array:
     """Convert to a float array, check its trailing shape, and (eagerly) finiteness."""
     x = _as_float(x)

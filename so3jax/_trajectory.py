@@ -9,11 +9,10 @@ from __future__ import annotations
 import operator
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._so3 import _is_concrete
+from ._so3 import _is_concrete, _to_dtype
 from ._state import LieState
 from ._types import Array, Float, Int
 
@@ -115,8 +114,7 @@ def _check_int(value, name: str, minimum: int) -> int:
 
 
 def _check_dt(dt, dtype) -> Array:
-    # A concrete step goes through NumPy: an eager JAX cast compiles on first use.
-    dt = jax.device_put(np.asarray(dt, dtype)) if _is_concrete(dt) else jnp.asarray(dt, dtype)
+    dt = _to_dtype(dt, dtype)
     if dt.shape != ():
         raise ValueError(f"dt must be a scalar, got shape {dt.shape}")
     if _is_concrete(dt):
