@@ -44,8 +44,8 @@ import numpy as np
 from ._control import _check_gain, _geometric_torque
 from ._dynamics import RigidBody
 from ._scene import Scene, check_rotation
-from ._scenes import _cast_floats, _check_reference
-from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _vee
+from ._scenes import _as_body, _cast_floats, _check_reference
+from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _to_dtype, _vee
 from ._state import LieState, LieTangent
 from ._types import Array, ArrayLike
 
@@ -637,7 +637,7 @@ def _vector_arg(value, name: str, dtype) -> Array:
     an = np.asarray(a)  # NumPy: an eager JAX broadcast and cast compile on first use
     if not np.all(np.isfinite(an)):
         raise ValueError(f"{name} contains NaN or inf")
-    return jax.device_put(np.broadcast_to(an, (3,)).astype(dtype))
+    return _to_dtype(np.broadcast_to(an, (3,)), dtype)
 
 
 def quadrotor(
@@ -687,11 +687,9 @@ def quadrotor(
         R0 = np.eye(3, dtype=jnp.result_type(float))
     R0 = check_rotation(R0, "R0")
     dtype = R0.dtype
-    m = _cast_floats(_check_scalar(mass, "mass", positive=True), dtype)
-    g = _cast_floats(_check_scalar(g, "g", positive=False), dtype)
-    body = inertia if isinstance(inertia, RigidBody) else RigidBody(inertia)
-    if body.inertia.dtype != dtype:
-        body = RigidBody(_cast_floats(body.inertia, dtype))
+    m = _to_dtype(_check_scalar(mass, "mass", positive=True), dtype)
+    g = _to_dtype(_check_scalar(g, "g", positive=False), dtype)
+    body = _as_body(inertia, dtype)
     if not isinstance(gains, QuadrotorGains):
         raise TypeError(f"gains must be a QuadrotorGains, got {type(gains).__name__}")
     gains = _cast_floats(gains, dtype)
@@ -702,7 +700,7 @@ def quadrotor(
     Omega0 = _vector_arg(Omega0, "Omega0", dtype)
     T = None
     if control_period is not None:
-        T = _cast_floats(_check_scalar(control_period, "control_period", positive=True), dtype)
+        T = _to_dtype(_check_scalar(control_period, "control_period", positive=True), dtype)
     vehicle = QuadrotorVehicle(mass=m, body=body, g=g)
     y0 = _quadrotor_state(R0, Omega0, x0, v0)
     scene = Quadrotor(vehicle=vehicle, gains=gains, reference=reference, y0=y0, control_period=T)

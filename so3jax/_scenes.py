@@ -22,7 +22,7 @@ from ._control import (
 )
 from ._dynamics import RigidBody
 from ._scene import MechanicalScene, check_rotation, check_vector
-from ._so3 import _exp_jit, from_euler_zyx
+from ._so3 import _exp_jit, _to_dtype, from_euler_zyx
 from ._state import LieState
 from ._types import ArrayLike
 
@@ -30,7 +30,7 @@ from ._types import ArrayLike
 def _cast_body(body: RigidBody, dtype) -> RigidBody:
     if body.inertia.dtype == dtype:
         return body
-    return RigidBody(body.inertia.astype(dtype))
+    return RigidBody(_to_dtype(body.inertia, dtype))
 
 
 def _as_body(inertia, dtype) -> RigidBody:
@@ -150,17 +150,9 @@ class Tracking(MechanicalScene):
 def _cast_floats(tree, dtype):
     """Every float array of ``tree`` as a (strongly typed) array of ``dtype``.
 
-    Concrete arrays are cast in NumPy: an eager JAX cast compiles on first use.
+    Concrete arrays are cast in NumPy (`_to_dtype`): an eager JAX cast compiles on first use.
     """
-
-    def cast(a):
-        if not eqx.is_inexact_array(a):
-            return a
-        if isinstance(a, jax.core.Tracer):
-            return a.astype(dtype)
-        return jax.device_put(np.asarray(a).astype(dtype))
-
-    return jax.tree.map(cast, tree)
+    return jax.tree.map(lambda a: _to_dtype(a, dtype) if eqx.is_inexact_array(a) else a, tree)
 
 
 def _check_reference(

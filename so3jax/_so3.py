@@ -677,7 +677,11 @@ def _log_from_quat(q: Array) -> Array:
 
 
 _to_quat_jit = jax.jit(_to_quat)
-_log_jit = jax.jit(lambda R: _log_from_quat(_to_quat(R)))
+def _log(R: Array) -> Array:
+    return _log_from_quat(_to_quat(R))
+
+
+_log_jit = jax.jit(_log)
 
 
 def log(R: Rot) -> Vec3:
@@ -891,7 +895,7 @@ def to_axis_angle(R: Rot) -> tuple[Vec3, Scalar]:
 
 @jax.jit
 def _to_axis_angle(R: Array) -> tuple[Array, Array]:
-    w = _log_from_quat(_to_quat(R))
+    w = _log(R)
     t = _dot(w, w)
     zero = t == 0
     th = jnp.sqrt(jnp.where(zero, 1.0, t))
