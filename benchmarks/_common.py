@@ -140,14 +140,29 @@ def _clean(x):
 
 
 def output_paths(args, name: str) -> tuple[Path, Path]:
+    """``<out>/<name>[-<backend>][-quick].{json,png}``: a GPU run writes ``name-gpu``,
+    so it never overwrites the CPU figures."""
+    if jax.default_backend() != "cpu":
+        name = f"{name}-{jax.default_backend()}"
     stem = f"{name}-quick" if args.quick else name
     return args.out / f"{stem}.json", args.out / f"{stem}.png"
 
 
-def write_json(path: Path, data: dict) -> None:
-    """JSON with NaN/inf written as null."""
+def write_json(path: Path, data: dict, quiet: bool = False) -> None:
+    """JSON with NaN/inf written as null (``quiet``: no line printed)."""
     path.write_text(json.dumps(_clean(data), indent=1) + "\n")
-    print(f"wrote {path}")
+    if not quiet:
+        print(f"wrote {path}")
+
+
+def write_partial(args, name: str, rows: list) -> None:
+    """The rows measured so far, to ``<name>[-<backend>][-quick].partial.json``.
+
+    Long runs (a device lease with a time limit) keep what finished when a later
+    step is cut off; the complete JSON replaces nothing until the end.
+    """
+    path = output_paths(args, name)[0].with_suffix(".partial.json")
+    write_json(path, {"env": environment(), "rows": rows}, quiet=True)
 
 
 def save_figure(fig, path: Path) -> None:

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import sys
+from pathlib import Path
 
 import jax
 
@@ -87,15 +88,24 @@ VARIANTS = {
 }
 
 
-def runner(label, scene, dt, n_steps, t1=None, tol=None):
-    """``f(R0s) -> (R_final, Omega_final, steps)``, vmapped over initial attitudes."""
+#: Extra sweep labels: the array program forced (``scalarize=False``). In the sweep a
+#: method's plain name (``"RKMK4"``) is the default program; before S30 it was this one.
+SWEEP_VARIANTS = {"RKMK4 array": (s.RKMK4, False)}
+
+
+def runner(label, scene, dt, n_steps, t1=None, tol=None, variants=VARIANTS):
+    """``f(R0s) -> (R_final, Omega_final, steps)``, vmapped over initial attitudes.
+
+    ``label`` is looked up in ``variants`` first (the equal-accuracy labels, where
+    ``"RKMK4"`` is the array program), then among the methods (default program).
+    """
 
     def one(R0):
         # The Lie-group runs take the start as simulate's R0 (what the docs show for a
         # batch of starts): the reference attitude Rd then stays unbatched, integrated
         # once per batch. The ambient baseline integrates it once per run.
-        if label in VARIANTS:
-            make, scal = VARIANTS[label]
+        if label in variants:
+            make, scal = variants[label]
             tr = s.simulate(scene, make(), dt, n_steps, n_steps, scalarize=scal, R0=R0)
             steps = jnp.asarray(n_steps)
         elif label in LIE:
@@ -122,14 +132,15 @@ def sweep(args):
     labels = ["RKMK4", "diffrax RK4"] if args.quick else list(LIE) + AMBIENT
     batches = args.batches or batches
     labels = args.methods or labels
-    dtypes = ["float64", "float32"]
+    dtypes = args.dtypes
     rows = []
     jobs = [(d, m, b) for d in dtypes for m in labels for b in batches]
     for dname, label, B in C.progress(jobs, "throughput"):
         dtype = jnp.dtype(dname)
         scene = base_scene(dtype)
         R0s = shard(s.random_rotation(jax.random.key(0), (B,), dtype=dtype))
-        fn = runner(label, scene, dt, n_steps, tol=TSIT5_TOL[dname])
+        sweep_variants = {k: v for k, v in {**VARIANTS, **SWEEP_VARIANTS}.items() if k not in LIE}
+        fn = runner(label, scene, dt, n_steps, tol=TSIT5_TOL[dname], variants=sweep_variants)
         reps = args.repeats if B * n_steps <= 1e6 else max(1, min(args.repeats, 2))
         r = C.compile_and_time(fn, R0s, repeats=reps)
         steps = float(np.sum(np.asarray(r["out"][2])))
@@ -146,6 +157,7 @@ def sweep(args):
                 "finite": finite,
             }
         )
+        C.write_partial(args, args.name, rows)
     return {"n_steps": n_steps, "dt": dt, "batches": batches, "methods": labels, "rows": rows}
 
 
@@ -159,11 +171,20 @@ def _n_star(scene, ref, T, make, ns):
     return ns[-1] if not math.isfinite(n_star) else int(math.ceil(n_star / 25) * 25)
 
 
-def calibrate(scene, quick):
+def calibrate(scene, quick, source=None):
     """Step counts and the Tsit5 tolerance reaching final attitude error 1e-8 (10 s).
 
     ``--quick`` skips the search (fixed settings; their errors are still measured).
+    ``source`` (``--calibration PATH``): the settings of an earlier run's JSON, taken
+    as they are (errors included): the search is a property of the method, not of the
+    device, and costs dozens of compilations.
     """
+    if source is not None:
+        import json
+
+        old = json.loads(Path(source).read_text())["equal_accuracy"]
+        keys = ["T", "rkmk4_n_steps", "rkmk4_err", "n_steps", "errors", "tsit5_tol", "tsit5_err"]
+        return {**{k: old[k] for k in keys}, "calibration_from": Path(source).name}
     T = 10.0
     if quick:  # a smoke run: RKMK4 only, against itself at 4x the steps
         ref = s.simulate(scene, s.RKMK4(), T / 4000, 4000, save_every=4000).R[-1]
@@ -215,12 +236,15 @@ def _check_settings(scene, ref, T, n_star, tol_star):
 
 def equal_accuracy(args):
     scene = base_scene(jnp.float64)
-    cal = calibrate(scene, args.quick)
+    cal = calibrate(scene, args.quick, args.calibration)
     B = 64 if args.quick else 4096
     T = cal["T"]
     R0s = shard(s.random_rotation(jax.random.key(1), (B,), dtype=jnp.float64))
     # --quick: the array program only (each scalarized variant compiles for seconds).
     variants = ["RKMK4"] if args.quick else list(VARIANTS)
+    variants = args.variants or variants
+    if "RKMK4" not in variants:  # the speed-up row reads it
+        variants = ["RKMK4", *variants]
     out = {"batch": B, "variants": variants, "devices": len(jax.local_devices()), **cal}
     runs = []
     for label in variants:
@@ -251,8 +275,12 @@ def equal_accuracy(args):
 
 def plot(res, path):
     sw = res["sweep"]
-    fig, axes = C.plt.subplots(1, 3, figsize=(17, 4.8))
+    eq = res.get("equal_accuracy")
+    fig, axes = C.plt.subplots(1, 3 if eq else 2, figsize=(17 if eq else 11.5, 4.8))
     for ax, dname in zip(axes[:2], ["float64", "float32"], strict=True):
+        if not any(r["dtype"] == dname for r in sw["rows"]):
+            ax.set_axis_off()
+            continue
         for label in dict.fromkeys(r["method"] for r in sw["rows"]):
             rr = [r for r in sw["rows"] if r["method"] == label and r["dtype"] == dname]
             ax.loglog(
@@ -270,7 +298,10 @@ def plot(res, path):
         ax.set_title(f"seed scenario, {dname}, {where}", fontsize=9)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    eq = res["equal_accuracy"]
+    if eq is None:
+        fig.tight_layout()
+        C.save_figure(fig, path)
+        return
     ax = axes[2]
     labels = [*eq.get("variants", VARIANTS), "diffrax Tsit5"]
     ax.barh(
@@ -294,12 +325,39 @@ def plot(res, path):
 
 def main():
     def extra(p):
-        p.add_argument("--methods", nargs="+", help=f"subset of {list(LIE) + AMBIENT}")
+        p.add_argument(
+            "--methods",
+            nargs="+",
+            help=f"subset of {list(LIE) + AMBIENT}, or variants {list(VARIANTS)[2:]} "
+            f"and {list(SWEEP_VARIANTS)}",
+        )
         p.add_argument("--batches", nargs="+", type=int, help="batch sizes of the sweep")
         p.add_argument(
             "--equal-only",
             action="store_true",
             help="rerun only the equal-accuracy part; keep the sweep of the existing JSON",
+        )
+        p.add_argument(
+            "--dtypes",
+            nargs="+",
+            default=["float64", "float32"],
+            choices=["float64", "float32"],
+            help="dtypes of the sweep",
+        )
+        p.add_argument(
+            "--sweep-only", action="store_true", help="skip the equal-accuracy part"
+        )
+        p.add_argument(
+            "--variants",
+            nargs="+",
+            choices=list(VARIANTS),
+            help="equal-accuracy variants to run (default all)",
+        )
+        p.add_argument(
+            "--calibration",
+            type=Path,
+            help="take the step counts and Tsit5 tolerance from this earlier JSON "
+            "(skips the search: dozens of compilations)",
         )
         p.add_argument(
             "--cpu-devices",
@@ -311,6 +369,7 @@ def main():
 
     args = C.parse_args(__doc__.splitlines()[0], extra)
     name = "throughput" if args.cpu_devices == 1 else f"throughput-cpu{args.cpu_devices}"
+    args.name = name
     json_path, png_path = C.output_paths(args, name)
     if args.equal_only:
         import json
@@ -322,10 +381,12 @@ def main():
             sw["from"] = source.name
     else:
         sw = sweep(args)
-    res = {"sweep": sw, "equal_accuracy": equal_accuracy(args)}
+    res = {"sweep": sw}
+    if not args.sweep_only:
+        res["equal_accuracy"] = equal_accuracy(args)
     res["env"] = C.environment()
     sw = res["sweep"]
-    for dname in ["float64", "float32"]:
+    for dname in dict.fromkeys(r["dtype"] for r in sw["rows"]):
         rows = []
         for label in dict.fromkeys(r["method"] for r in sw["rows"]):
             rr = {r["batch"]: r for r in sw["rows"] if r["method"] == label and r["dtype"] == dname}
@@ -336,6 +397,10 @@ def main():
             rows.append(row)
         cols = ["method"] + [f"B={b}" for b in sw["batches"]] + ["compile_s", "mem_MB@max"]
         C.print_table(rows, cols, f"body-steps/s, {dname}, {sw['n_steps']} steps of {sw['dt']} s")
+    if "equal_accuracy" not in res:
+        C.write_json(json_path, res)
+        plot(res, png_path)
+        return
     eq = res["equal_accuracy"]
     title = (
         f"equal accuracy (1e-8): {eq['batch']} seed trajectories; steps {eq['n_steps']}, "

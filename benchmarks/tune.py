@@ -50,6 +50,19 @@ import so3jax as so3  # noqa: E402
 from so3jax._integrators import METHODS, method_by_name  # noqa: E402
 
 
+#: The variants, in the order they run (the first is the baseline of the ratios).
+VARIANTS = [
+    "forward pass",
+    "forward pass, array program",
+    "reverse (default)",
+    "reverse, checkpointed",
+    "reverse, discrete adjoint",
+    "reverse, no checkpoints",
+    "forward mode (jacfwd)",
+    "forward mode, JAX's jvp",
+]
+
+
 def measure(fn, arg, repeats):
     t = time.perf_counter()
     compiled = jax.jit(fn).lower(arg).compile()
@@ -78,10 +91,22 @@ def main(argv=None):
         default=None,
         help=f"one of {', '.join(METHODS)} (default RKMK4; --quick: LieEuler)",
     )
+    p.add_argument("--batches", nargs="+", type=int, help="batch sizes (default 16 256)")
+    p.add_argument("--horizons", nargs="+", type=int, help="step counts (default 1000 4000)")
+    p.add_argument(
+        "--variants",
+        nargs="+",
+        choices=VARIANTS,
+        help="variants to run besides the forward pass (default all)",
+    )
     args = p.parse_args(argv)
+    args.out = Path(args.out)
+    args.out.mkdir(parents=True, exist_ok=True)
     # --quick is a smoke run: one horizon and the one-stage method, because
     # compiling the reverse passes is what takes the time.
     horizons, batches, repeats = ((100,), (2,), 3) if args.quick else ((1000, 4000), (16, 256), 3)
+    horizons = tuple(args.horizons or horizons)
+    batches = tuple(args.batches or batches)
     method_name = args.method or ("LieEuler" if args.quick else "RKMK4")
     method = METHODS[method_name]()
     scene = so3.scenes.seed()
@@ -105,7 +130,10 @@ def main(argv=None):
             "forward mode (jacfwd)": jax.jacfwd(lambda k: cost(k, None)),
             "forward mode, JAX's jvp": jax.jacfwd(lambda k: cost(k, None, "autodiff")),
         }
-        if args.quick:  # the smoke run compiles the fewest programs
+        assert list(variants) == VARIANTS
+        if args.variants:  # the forward pass stays: it is the baseline of the ratios
+            variants = {k: v for k, v in variants.items() if k in args.variants or k == VARIANTS[0]}
+        elif args.quick:  # the smoke run compiles the fewest programs
             variants.pop("forward pass, array program")
             variants.pop("reverse, no checkpoints")
             variants.pop("reverse, checkpointed")
@@ -123,6 +151,7 @@ def main(argv=None):
                 temp_ratio=r["temp_bytes"] / max(base["temp_bytes"], 1),
             )
             rows.append(r)
+            C.write_partial(args, "tune", rows)
             print(
                 f"B={B:4d} n={n:5d} {name:28s} {r['seconds'] * 1e3:9.2f} ms "
                 f"({r['time_ratio']:5.1f}x)  "

@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# The GPU column of the benchmarks in one short run (issue 11), sized for a
+# 15-minute device lease: every step has its own time limit, the log is written
+# as it goes, and what finished is packed into one archive at the end.
+#
+#   bash benchmarks/gpu.sh OUT_DIR [SCALE]
+#
+# SCALE=full (default) for the GPU sizes; SCALE=smoke runs the same steps at CPU
+# sizes (checks the plumbing here). Results: OUT_DIR/gpu.log and
+# OUT_DIR/gpu-results.tar.gz (the scripts' <name>-gpu.json / .png).
+set -u
+out=${1:?usage: gpu.sh OUT_DIR [full|smoke]}
+scale=${2:-full}
+here=$(cd "$(dirname "$0")" && pwd)
+res=$out/results
+mkdir -p "$res/f32" "$res/f64" "$res/tune" "$res/sweep"
+log=$out/gpu.log
+export PYTHONUNBUFFERED=1 PYTHONPATH=$here/..:${PYTHONPATH:-}
+py=${PYTHON:-python3}
+if [ "$scale" = full ]; then
+  big="2048 1048576"; lim=(140 130 60 90 70); tb="256 4096"; chunk=65536; q=
+else
+  big="8 64"; lim=(120 120 120 120 120); tb="4"; chunk=256; q=--quick
+fi
+step() {  # step LIMIT_S NAME COMMAND...
+  local t0=$SECONDS lim=$1 name=$2
+  shift 2
+  echo "=== $name (limit ${lim}s)" >>"$log"
+  timeout -k 5 "$lim" "$@" >>"$log" 2>&1
+  echo "=== $name: exit $? after $((SECONDS - t0)) s" >>"$log"
+}
+{
+  date -u
+  nvidia-smi -L 2>&1
+  $py -c "import jax, diffrax, equinox; print('jax', jax.__version__, jax.devices(), 'diffrax', diffrax.__version__, 'equinox', equinox.__version__)" 2>&1
+} >>"$log"
+tp="$py $here/throughput.py --repeats 3 $q"
+step "${lim[0]}" "throughput float32" $tp --out "$res/f32" --dtypes float32 --sweep-only \
+  --methods RKMK4 LGVI "diffrax RK4" "diffrax Tsit5" --batches $big
+step "${lim[1]}" "tune" $py "$here/tune.py" $q --out "$res/tune" --batches $tb --horizons 1000 \
+  --variants "reverse (default)" "reverse, discrete adjoint" "forward mode (jacfwd)"
+step "${lim[2]}" "throughput float64" $tp --out "$res/f64" --dtypes float64 --sweep-only \
+  --methods RKMK4 LGVI "diffrax Tsit5" --batches $big
+# The equal-accuracy part joins the float64 sweep's JSON (--equal-only reads it back).
+step "${lim[3]}" "equal accuracy" $tp --out "$res/f64" --equal-only \
+  --calibration "$here/results/throughput.json" \
+  --variants "RKMK4 default" "RKMK4-cayley scalarized" "RKMKTsit5-cayley scalarized"
+step "${lim[4]}" "gain sweep" $py "$here/sweep.py" --out "$res/sweep" --chunk-size $chunk $q
+tar -C "$res" -czf "$out/gpu-results.tar.gz" . && rm -rf "$res"
+echo "=== done after $SECONDS s" >>"$log"
