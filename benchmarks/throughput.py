@@ -344,9 +344,7 @@ def main():
             choices=["float64", "float32"],
             help="dtypes of the sweep",
         )
-        p.add_argument(
-            "--sweep-only", action="store_true", help="skip the equal-accuracy part"
-        )
+        p.add_argument("--sweep-only", action="store_true", help="skip the equal-accuracy part")
         p.add_argument(
             "--variants",
             nargs="+",

@@ -49,7 +49,6 @@ import matplotlib.pyplot as plt  # noqa: E402
 import so3jax as so3  # noqa: E402
 from so3jax._integrators import METHODS, method_by_name  # noqa: E402
 
-
 #: The variants, in the order they run (the first is the baseline of the ratios).
 VARIANTS = [
     "forward pass",

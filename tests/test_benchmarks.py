@@ -193,7 +193,9 @@ def test_layouts_forces_the_array_program():
     R0s = s.random_rotation(jax.random.key(0), (64,))
 
     def batch(scalarize=None):
-        return jax.vmap(lambda R0: s.simulate(scene, s.RKMK4(), 0.01, 3, 3, scalarize=scalarize, R0=R0).R)
+        return jax.vmap(
+            lambda R0: s.simulate(scene, s.RKMK4(), 0.01, 3, 3, scalarize=scalarize, R0=R0).R
+        )
 
     default = _jaxpr_size(batch(), R0s)  # traced first: the cache holds the default
     with layouts["layout"]("array"):
