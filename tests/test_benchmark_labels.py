@@ -1,0 +1,83 @@
+"""The benchmark scripts measure what their labels say (S30's GPU run caught two that did not).
+
+Apart from `test_benchmarks.py`, whose quick runs share one xdist worker (`--dist loadfile`).
+"""
+
+import runpy
+import sys
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+def _bench_module(name):
+    """A benchmark script imported as a module (its folder on the path for ``_common``)."""
+    path = list(sys.path)
+    sys.path.insert(0, str(BENCH))
+    try:
+        return runpy.run_path(str(BENCH / f"{name}.py"), run_name=f"bench_{name}")
+    finally:
+        sys.path[:] = path
+
+
+def _jaxpr_size(fn, *args) -> int:
+    import jax
+
+    return len(str(jax.make_jaxpr(fn)(*args)))
+
+
+def test_layouts_forces_the_array_program():
+    """`layouts.layout("array")` changes the traced program, also after a default trace.
+
+    JAX caches the batched jaxpr of the jitted functions inside `simulate`: the S30 GPU
+    run's "array" rows were the default program because the table was edited without
+    clearing those caches. The forced layout must trace what ``scalarize=False`` traces.
+    """
+    import jax
+
+    import so3jax as s
+
+    layouts = _bench_module("layouts")
+    scene = s.scenes.seed()
+    R0s = s.random_rotation(jax.random.key(0), (64,))
+
+    def batch(scalarize=None):
+        return jax.vmap(
+            lambda R0: s.simulate(scene, s.RKMK4(), 0.01, 3, 3, scalarize=scalarize, R0=R0).R
+        )
+
+    default = _jaxpr_size(batch(), R0s)  # traced first: the cache holds the default
+    with layouts["layout"]("array"):
+        forced = _jaxpr_size(batch(), R0s)
+    array = _jaxpr_size(batch(False), R0s)
+    assert forced < 0.8 * default  # the scalarized program is the larger jaxpr
+    assert abs(forced - array) < 0.05 * array
+    assert _jaxpr_size(batch(), R0s) == default  # the table is restored on exit
+
+
+def test_throughput_sweep_labels():
+    """In the throughput sweep a method's name is the default program; ``RKMK4 array``
+    forces the array program; in the equal-accuracy part ``RKMK4`` is the array program."""
+    import jax
+
+    import so3jax as s
+
+    old_argv = sys.argv
+    sys.argv = ["throughput.py"]
+    try:
+        tp = _bench_module("throughput")
+    finally:
+        sys.argv = old_argv
+    scene = s.scenes.seed()
+    R0s = s.random_rotation(jax.random.key(0), (64,))
+    sweep_variants = {**tp["VARIANTS"], **tp["SWEEP_VARIANTS"]}
+    sweep_variants = {k: v for k, v in sweep_variants.items() if k not in tp["LIE"]}
+
+    def size(label, variants):
+        return _jaxpr_size(tp["runner"](label, scene, 0.01, 3, variants=variants), R0s)
+
+    default = size("RKMK4", sweep_variants)
+    assert size("RKMK4 default", tp["VARIANTS"]) == default
+    array = size("RKMK4 array", sweep_variants)
+    assert array < 0.8 * default
+    assert size("RKMK4", tp["VARIANTS"]) == array
