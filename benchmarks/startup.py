@@ -46,8 +46,7 @@ ENTRIES = {
         "out = s.random_rotation(key, (4096,))",
     ),
     "primitives on 256 rotations": (
-        "R = np.asarray(s.random_rotation(jax.random.key(0), (256,)))\n"
-        "w = np.asarray(s.log(R))",
+        "R = np.asarray(s.random_rotation(jax.random.key(0), (256,)))\nw = np.asarray(s.log(R))",
         "out = (s.exp(w), s.log(R), s.to_euler_zyx(R), s.from_euler_zyx(0.1, 0.2, 0.3),\n"
         "       s.attitude_error_function(R, R[::-1]), s.orthogonality_error(R),\n"
         "       s.geodesic_distance(R, R[::-1]), s.hat(w), s.vee(R), s.to_quat(R))",
@@ -154,7 +153,8 @@ def main():
         b = base.get(row["entry"])
         row["speedup_vs_baseline"] = b / row["cold_s"] if b else None
     C.print_table(
-        rows, ["entry", "code", "cold_s", "cold_max_s", "warm_s", "compiles", "import_s"],
+        rows,
+        ["entry", "code", "cold_s", "cold_max_s", "warm_s", "compiles", "import_s"],
         "first call in a fresh process (min over repeats)",
     )
     json_path, png_path = C.output_paths(args, "startup")

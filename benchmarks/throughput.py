@@ -5,7 +5,10 @@
    diffrax (fixed-step RK4 and adaptive Tsit5, ambient), in float64 and
    float32: body-steps per second (batch x steps / wall time; for adaptive
    Tsit5, the accepted steps), compile time and XLA's memory estimate
-   (arguments + outputs + temporaries). Batch 1 to 65536 (``--quick``: 8).
+   (arguments + outputs + temporaries). Batch 1 to 65536 (``--quick``: 8). A
+   method's name is its default program; ``"RKMK4 array"`` forces the array
+   program and ``"RKMK4 scalarized"`` (and the other variants below) the
+   scalarized one (before S30 the sweep's ``"RKMK4"`` was the array program).
 2. *Equal accuracy*: 4096 seed trajectories (``--quick``: 64, RKMK4 only) of 10 s, each
    method at the step count (diffrax Tsit5: the tolerance) that reaches final
    attitude error 1e-8 on the seed initial condition (calibrated in the same
@@ -17,10 +20,14 @@
    Cayley coordinates.
 
 The JSON records `jax.default_backend()` and the device kind: run it on a GPU
-for the GPU column. ``--cpu-devices N`` splits the CPU into N JAX devices and shards
-every batch across them (the Lie-group runs and the diffrax baseline alike).
+for the GPU column (``benchmarks/gpu.sh`` does, sized for a device lease, with
+``--dtypes``, ``--sweep-only``, ``--variants`` and ``--calibration``, which takes
+the step counts and tolerance of an earlier run's JSON). ``--cpu-devices N`` splits
+the CPU into N JAX devices and shards every batch across them (the Lie-group runs
+and the diffrax baseline alike).
 
-Writes ``results/throughput[-quick].json`` and ``.png``.
+Writes ``results/throughput[-<backend>][-quick].json`` and ``.png`` (the backend
+named off CPU), and ``.partial.json`` after every sweep row.
 
     python benchmarks/throughput.py            # full (several minutes)
     python benchmarks/throughput.py --quick    # seconds
@@ -91,6 +98,8 @@ VARIANTS = {
 #: Extra sweep labels: the array program forced (``scalarize=False``). In the sweep a
 #: method's plain name (``"RKMK4"``) is the default program; before S30 it was this one.
 SWEEP_VARIANTS = {"RKMK4 array": (s.RKMK4, False)}
+#: The labels the sweep looks up before the method names (none of them a method's name).
+SWEEP_LABELS = {k: v for k, v in {**VARIANTS, **SWEEP_VARIANTS}.items() if k not in LIE}
 
 
 def runner(label, scene, dt, n_steps, t1=None, tol=None, variants=VARIANTS):
@@ -139,8 +148,7 @@ def sweep(args):
         dtype = jnp.dtype(dname)
         scene = base_scene(dtype)
         R0s = shard(s.random_rotation(jax.random.key(0), (B,), dtype=dtype))
-        sweep_variants = {k: v for k, v in {**VARIANTS, **SWEEP_VARIANTS}.items() if k not in LIE}
-        fn = runner(label, scene, dt, n_steps, tol=TSIT5_TOL[dname], variants=sweep_variants)
+        fn = runner(label, scene, dt, n_steps, tol=TSIT5_TOL[dname], variants=SWEEP_LABELS)
         reps = args.repeats if B * n_steps <= 1e6 else max(1, min(args.repeats, 2))
         r = C.compile_and_time(fn, R0s, repeats=reps)
         steps = float(np.sum(np.asarray(r["out"][2])))

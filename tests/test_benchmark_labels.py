@@ -70,8 +70,8 @@ def test_throughput_sweep_labels():
         sys.argv = old_argv
     scene = s.scenes.seed()
     R0s = s.random_rotation(jax.random.key(0), (64,))
-    sweep_variants = {**tp["VARIANTS"], **tp["SWEEP_VARIANTS"]}
-    sweep_variants = {k: v for k, v in sweep_variants.items() if k not in tp["LIE"]}
+    sweep_variants = tp["SWEEP_LABELS"]
+    assert "RKMK4" not in sweep_variants and "RKMK4" in tp["VARIANTS"]
 
     def size(label, variants):
         return _jaxpr_size(tp["runner"](label, scene, 0.01, 3, variants=variants), R0s)

@@ -990,8 +990,20 @@ def test_constants_inside_traced_control_flow(name):
 
 @pytest.mark.parametrize(
     "x",
-    [8.81, np.float64(1.5), np.float32(1.5), np.ones(3, np.float32), np.eye(3), (0.0, 2.0),
-     [0.5, 0.2, 0.1], [1, 2, 3], (1.0, 2), np.int64(3), jnp.ones(3, jnp.float32), True],
+    [
+        8.81,
+        np.float64(1.5),
+        np.float32(1.5),
+        np.ones(3, np.float32),
+        np.eye(3),
+        (0.0, 2.0),
+        [0.5, 0.2, 0.1],
+        [1, 2, 3],
+        (1.0, 2),
+        np.int64(3),
+        jnp.ones(3, jnp.float32),
+        True,
+    ],
     ids=repr,
 )
 def test_as_float_matches_jnp_asarray(x):
