@@ -313,7 +313,11 @@ def plot(res, path):
     ax = axes[2]
     labels = [*eq.get("variants", VARIANTS), "diffrax Tsit5"]
     ax.barh(
-        [k.replace(" scalarized", "\nscalarized") for k in labels],
+        # In this part "RKMK4" is the array program forced (VARIANTS).
+        [
+            k.replace(" scalarized", "\nscalarized") if k != "RKMK4" else "RKMK4\narray"
+            for k in labels
+        ],
         [eq[k]["trajectories_per_s"] for k in labels],
         color=[f"C{i}" for i in range(len(labels))],
     )
