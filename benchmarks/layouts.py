@@ -31,14 +31,9 @@ import numpy as np  # noqa: E402
 import so3jax as s  # noqa: E402
 from so3jax import _engine  # noqa: E402
 
-METHODS = {
-    "LieEuler": s.LieEuler,
-    "CG3": s.CG3,
-    "RKMK4": s.RKMK4,
-    "RKMK4-cayley": lambda: s.RKMK4(coords="cayley"),
-    "CF4": s.CF4,
-    "LGVI": s.LGVI,
-}
+#: The benchmarks' fixed-step methods (RKMK45 left out) and RKMK4 in Cayley coordinates.
+METHODS = {k: v for k, v in C.lie_methods().items() if k != "RKMK45"}
+METHODS["RKMK4-cayley"] = lambda: s.RKMK4(coords="cayley")
 
 
 @contextlib.contextmanager

@@ -35,6 +35,7 @@ named off CPU), and ``.partial.json`` after every sweep row.
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 from pathlib import Path
@@ -134,7 +135,8 @@ def runner(label, scene, dt, n_steps, t1=None, tol=None, variants=VARIANTS):
     return jax.vmap(one)
 
 
-def sweep(args):
+def sweep(args, name="throughput"):
+    """Body-steps/s per dtype, method and batch; rows also to ``<name>.partial.json``."""
     n_steps = 20 if args.quick else 100
     dt = 0.01
     batches = [8] if args.quick else [1, 16, 256, 4096, 65536]
@@ -165,7 +167,7 @@ def sweep(args):
                 "finite": finite,
             }
         )
-        C.write_partial(args, args.name, rows)
+        C.write_partial(args, name, rows)
     return {"n_steps": n_steps, "dt": dt, "batches": batches, "methods": labels, "rows": rows}
 
 
@@ -188,8 +190,6 @@ def calibrate(scene, quick, source=None):
     device, and costs dozens of compilations.
     """
     if source is not None:
-        import json
-
         old = json.loads(Path(source).read_text())["equal_accuracy"]
         keys = ["T", "rkmk4_n_steps", "rkmk4_err", "n_steps", "errors", "tsit5_tol", "tsit5_err"]
         return {**{k: old[k] for k in keys}, "calibration_from": Path(source).name}
@@ -379,18 +379,15 @@ def main():
 
     args = C.parse_args(__doc__.splitlines()[0], extra)
     name = "throughput" if args.cpu_devices == 1 else f"throughput-cpu{args.cpu_devices}"
-    args.name = name
     json_path, png_path = C.output_paths(args, name)
     if args.equal_only:
-        import json
-
         source = json_path if json_path.exists() else C.output_paths(args, "throughput")[0]
         old = json.loads(open(source).read())
         sw = {**old["sweep"], "measured": old.get("env", {}).get("date")}
         if source != json_path:
             sw["from"] = source.name
     else:
-        sw = sweep(args)
+        sw = sweep(args, name)
     res = {"sweep": sw}
     if not args.sweep_only:
         res["equal_accuracy"] = equal_accuracy(args)

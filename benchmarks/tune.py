@@ -156,8 +156,6 @@ def main(argv=None):
                 f"({r['time_ratio']:5.1f}x)  "
                 f"temp {r['temp_bytes'] / 2**20:8.2f} MiB  compile {r['compile_s']:.1f} s"
             )
-    args.out = Path(args.out)
-    args.out.mkdir(parents=True, exist_ok=True)
     json_path, png_path = C.output_paths(args, "tune")
     C.write_json(
         json_path, {"benchmark": "tune", "quick": args.quick, "env": C.environment(), "rows": rows}
