@@ -385,6 +385,11 @@ def _component_flags(example, batched) -> list:
     ]
 
 
+#: Steps per iteration of the step loops' `lax.scan` (its ``unroll``), read at trace time.
+#: 1 everywhere for now; `benchmarks/unroll.py` measures other values per backend.
+SCAN_UNROLL = 1
+
+
 class _Loop:
     """The programs of one fixed-step loop (forward, tangent, adjoint), both layouts."""
 
@@ -396,7 +401,9 @@ class _Loop:
 
     def _repeat(self, fn, x):
         """``save_every`` applications of ``fn`` under ``lax.scan``."""
-        return jax.lax.scan(lambda x, _: (fn(x), None), x, None, length=self.save_every)[0]
+        return jax.lax.scan(
+            lambda x, _: (fn(x), None), x, None, length=self.save_every, unroll=SCAN_UNROLL
+        )[0]
 
     def _save_loop(self, body, observe, x0):
         """``n_save`` blocks of ``save_every`` applications of ``body``, observed after each."""
@@ -405,7 +412,8 @@ class _Loop:
             x = body(x) if self.save_every == 1 else self._repeat(body, x)
             return x, observe(x)
 
-        return jax.lax.scan(block, x0, None, length=self.n_save)
+        unroll = SCAN_UNROLL if self.save_every == 1 else 1
+        return jax.lax.scan(block, x0, None, length=self.n_save, unroll=unroll)
 
     # ---------------- forward ----------------
 
