@@ -1,9 +1,10 @@
 """Array against scalarized program under ``vmap``, on whatever backend runs it.
 
-The execution engine (`so3jax._engine.BATCHED_LAYOUT`) picks a layout per batch
-size; the table was measured on the 2-core CPU. This script runs the same calls
-with the engine's choice ("default") and with the array program forced
-("array": every entry of the table set to never), side by side in one process:
+The execution engine (`so3jax._engine.batched_layout`) picks a layout per batch
+size; the table was measured on the 2-core CPU (`GPU_LAYOUT` holds what differs on
+a GPU). This script runs the same calls with the engine's choice ("default") and
+with the array program forced ("array": every entry of both tables set to never),
+side by side in one process:
 
 - throughput: ``vmap(simulate)`` over random starts of the seed scenario, 100
   steps of 0.01 s, body-steps per second, per method, batch and dtype;
@@ -39,17 +40,19 @@ METHODS["RKMK4-cayley"] = lambda: s.RKMK4(coords="cayley")
 @contextlib.contextmanager
 def layout(name):
     """``"default"``: the engine's table; ``"array"``: the array program for every batch."""
-    saved = dict(_engine.BATCHED_LAYOUT)
+    saved, saved_gpu = dict(_engine.BATCHED_LAYOUT), dict(_engine.GPU_LAYOUT)
     # JAX caches the batched jaxpr of every jitted function inside `simulate`: without
     # clearing, a trace after the first reuses the first one's layout whatever the table
     # says (the S30 GPU run's "array" rows were the default program for that reason).
     jax.clear_caches()
     if name == "array":
         _engine.BATCHED_LAYOUT.update({k: (None, None) for k in saved})
+        _engine.GPU_LAYOUT.update({k: (None, None) for k in saved_gpu})
     try:
         yield
     finally:
         _engine.BATCHED_LAYOUT.update(saved)
+        _engine.GPU_LAYOUT.update(saved_gpu)
         jax.clear_caches()
 
 

@@ -11,7 +11,9 @@ is, with no flag for the user to know:
   program (`so3jax._scalarize`): every scalar component of the carry is its
   own contiguous ``(B,)`` array and a step is a few hundred small elementwise
   kernels (a structure-of-arrays layout); a smaller batch runs the array
-  program, vmapped (faster there: `BATCHED_LAYOUT`). The switch is a
+  program, vmapped (faster there: `BATCHED_LAYOUT`). On a GPU the threshold is
+  4096 runs (`GPU_LAYOUT`): below it both layouts are latency bound there and the
+  array program compiles 5x faster. The switch is a
   `jax.custom_batching.custom_vmap` rule, so nested ``vmap`` (gains x
   attitudes) and ``vmap`` inside ``jit`` take it. On CPU, from 64 runs on, the
   rule also hands the program an unbatched index
@@ -334,6 +336,22 @@ BATCHED_LAYOUT = {
     "adjoint": (None, None),
 }
 
+#: On a GPU, the entries that differ from `BATCHED_LAYOUT` (the others are the CPU's).
+#: ``"run"``: scalarized from 4096 runs. Below that a GPU is latency bound in either
+#: layout and the scalarized program compiles 5x longer: at 2048 seed runs (100 steps,
+#: RKMK4) it ran 0.89x (float32) and 1.13x (float64) the array program's speed on S30's
+#: H100 and 1.02x / 1.10x on S31's H200, and compiled in 8.6 to 9.3 s against 1.4 to
+#: 2.2 s. From 4096 runs it pulls ahead: 1.27x at 4096 (float64, 750 steps, H200), 7.6x
+#: to 8.4x at 2^20. Cuts are CPU only (`so3jax._scalarize.cut_index`).
+GPU_LAYOUT = {"run": (4096, None)}
+
+
+def batched_layout(what: str) -> tuple:
+    """``(s, c)`` for program ``what`` on the default backend (`BATCHED_LAYOUT`, `GPU_LAYOUT`)."""
+    if jax.default_backend() == "gpu":
+        return GPU_LAYOUT.get(what, BATCHED_LAYOUT[what])
+    return BATCHED_LAYOUT[what]
+
 
 def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
     """``array_fn`` when unbatched; ``vmap`` of ``scalar_fn`` when batched.
@@ -348,12 +366,13 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
     @fn.def_vmap
     def _rule(axis_size, in_batched, *args):
         axes = tuple(jax.tree.map(lambda b: 0 if b else None, ib) for ib in in_batched)
-        scalar_from, cut_from = BATCHED_LAYOUT[what]
+        scalar_from, cut_from = batched_layout(what)
         if scalar_from is None or axis_size < scalar_from:
             out = jax.vmap(array_fn, in_axes=axes)(*args)
             return out, jax.tree.map(lambda _: True, out)
         try:
-            index = sc.cut_index(args) if axis_size >= cut_from else None
+            cuts = cut_from is not None and axis_size >= cut_from
+            index = sc.cut_index(args) if cuts else None
             if what in ("run", "scalar", "tangent", "jacobian") and index is not None:
                 # The forward, tangent and Jacobian loops settle their carry's batching up
                 # front (`sc.settle_batched`); the adjoint's backward scan does not.

@@ -257,7 +257,7 @@ def test_scalarized_tangent_program_for_large_batches():
     With two gains the default reverse mode takes the Jacobian's columns from it, and
     equals JAX's autodiff."""
     sc0 = _seed()
-    R0, W0 = s.initial_states(jax.random.PRNGKey(3), _engine.BATCHED_LAYOUT["jacobian"][1])
+    R0, W0 = s.initial_states(jax.random.PRNGKey(3), _engine.batched_layout("jacobian")[1])
 
     def cost(program):
         return lambda k: s.expected_cost(
@@ -318,3 +318,37 @@ def test_dependence_walk():
     assert _engine._depends(f, [x, x, x], [True, False, False]) == [True, False, True, False]
     assert _engine._depends(f, [x, x, x], [False, True, False]) == [False, True, False, False]
     assert _engine._depends(f, [x, x, x], [False, False, True]) == [False, False, True, False]
+
+
+def test_gpu_layout_table(monkeypatch):
+    """On a GPU `batched_layout` takes `GPU_LAYOUT`'s entries: a batch of 64 runs (scalarized
+    on the CPU) traces the array program there, 4096 runs the scalarized one, and the other
+    programs keep the CPU's table. The numbers do not depend on the layout."""
+    sc = s.scenes.seed()
+    R0s = s.random_rotation(jax.random.key(4), (64,))
+
+    def batch(R0s, scalarize=None):
+        return jax.vmap(
+            lambda R0: s.simulate(sc, s.RKMK4(), DT, 4, 2, scalarize=scalarize, R0=R0).R
+        )(R0s)
+
+    def size(*args):
+        return len(str(jax.make_jaxpr(batch, static_argnums=1)(*args)))
+
+    cpu, cpu_R = size(R0s), batch(R0s)
+    assert _engine.batched_layout("run") == _engine.BATCHED_LAYOUT["run"]
+    jax.clear_caches()  # the batched jaxprs inside simulate hold the CPU's layout
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    try:
+        assert _engine.batched_layout("run") == _engine.GPU_LAYOUT["run"]
+        assert _engine.batched_layout("jacobian") == _engine.BATCHED_LAYOUT["jacobian"]
+        gpu_small, array = size(R0s), size(R0s, False)
+        assert abs(gpu_small - array) < 0.05 * array and array < 0.8 * cpu  # the array program
+        big = jnp.broadcast_to(R0s[0], (_engine.GPU_LAYOUT["run"][0], 3, 3))
+        default, scalar = size(big), size(big, True)  # off the CPU: the scalarized program uncut
+        assert abs(default - scalar) < 0.02 * scalar and default > 1.1 * size(big, False)
+        np.testing.assert_allclose(batch(R0s), cpu_R, rtol=0, atol=1e-13)
+    finally:
+        monkeypatch.undo()
+        jax.clear_caches()
+    assert size(R0s) == cpu

@@ -408,7 +408,7 @@ def test_batched_runs_share_the_reference_attitude():
     sc = so3jax.scenes.seed()
     method, dt, n = so3jax.RKMK4(), 0.01, 8
     # batches large enough for the scalarized program (smaller ones run the array program)
-    B = _engine.BATCHED_LAYOUT["run"][0]
+    B = _engine.batched_layout("run")[0]
     R0, W0 = so3jax.initial_states(0, B)
     k = jnp.linspace(2.0, 8.0, B)
 
@@ -492,7 +492,7 @@ def test_start_arguments_share_the_reference_under_vmap():
     """Under vmap over `R0` the reference attitude stays unbatched; vmap equals single runs."""
     sc = so3jax.scenes.seed()
     method, dt, n = so3jax.RKMK4(), 0.01, 8
-    B = _engine.BATCHED_LAYOUT["run"][0]
+    B = _engine.batched_layout("run")[0]
     R0, W0 = so3jax.initial_states(0, B)
 
     def public(R, W):
