@@ -323,9 +323,11 @@ def test_dependence_walk():
 def test_gpu_layout_table(monkeypatch):
     """On a GPU `batched_layout` takes `GPU_LAYOUT`'s entries: a batch of 64 runs (scalarized
     on the CPU) traces the array program there, 4096 runs the scalarized one, and the other
-    programs keep the CPU's table. The numbers do not depend on the layout."""
+    programs keep the CPU's table. (That both layouts give the same numbers is
+    `test_scalarize.py`'s.) Traces only: compiling them would cost the suite seconds."""
     sc = s.scenes.seed()
     R0s = s.random_rotation(jax.random.key(4), (64,))
+    big = jnp.broadcast_to(R0s[0], (_engine.GPU_LAYOUT["run"][0], 3, 3))
 
     def batch(R0s, scalarize=None):
         return jax.vmap(
@@ -335,20 +337,17 @@ def test_gpu_layout_table(monkeypatch):
     def size(*args):
         return len(str(jax.make_jaxpr(batch, static_argnums=1)(*args)))
 
-    cpu, cpu_R = size(R0s), batch(R0s)
     assert _engine.batched_layout("run") == _engine.BATCHED_LAYOUT["run"]
-    jax.clear_caches()  # the batched jaxprs inside simulate hold the CPU's layout
+    assert _engine.BATCHED_LAYOUT["run"][0] <= 64  # scalarized on the CPU
+    jax.clear_caches()  # batched jaxprs inside simulate may hold the CPU's layout
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     try:
         assert _engine.batched_layout("run") == _engine.GPU_LAYOUT["run"]
         assert _engine.batched_layout("jacobian") == _engine.BATCHED_LAYOUT["jacobian"]
-        gpu_small, array = size(R0s), size(R0s, False)
-        assert abs(gpu_small - array) < 0.05 * array and array < 0.8 * cpu  # the array program
-        big = jnp.broadcast_to(R0s[0], (_engine.GPU_LAYOUT["run"][0], 3, 3))
-        default, scalar = size(big), size(big, True)  # off the CPU: the scalarized program uncut
-        assert abs(default - scalar) < 0.02 * scalar and default > 1.1 * size(big, False)
-        np.testing.assert_allclose(batch(R0s), cpu_R, rtol=0, atol=1e-13)
+        small, array = size(R0s), size(R0s, False)
+        assert abs(small - array) < 0.05 * array  # the array program
+        assert size(big) > 1.1 * size(big, False)  # the scalarized program
     finally:
         monkeypatch.undo()
         jax.clear_caches()
-    assert size(R0s) == cpu
+    assert _engine.batched_layout("run") == _engine.BATCHED_LAYOUT["run"]
