@@ -13,6 +13,12 @@ a batch, the first `simulate`), this script starts a fresh process, imports so3j
 ``PATH`` (another checkout, e.g. ``git worktree add /tmp/base HEAD~1``), alternating
 the two in fresh processes, so the JSON has both columns from one run.
 
+``--persistent-cache`` adds a column with JAX's persistent compilation cache on
+(``JAX_COMPILATION_CACHE_DIR``, a fresh temporary folder, every program stored): one
+fresh process per entry fills it, then the timed processes read it, as a notebook
+does after a kernel restart. (A program with a host callback is not stored: since S31
+a ``dt`` given as a number no longer adds one.)
+
 Writes ``results/startup[-quick].json`` and ``.png``.
 
     python benchmarks/startup.py                            # every entry, 5 repeats
@@ -24,8 +30,10 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 
 import _common as C
 import numpy as np
@@ -54,6 +62,17 @@ ENTRIES = {
     "first simulate(seed, RKMK4, 1000 steps)": (
         "scene = s.scenes.seed(); m = s.RKMK4()",
         "out = s.simulate(scene, m, dt=1e-2, n_steps=1000, save_every=10)",
+    ),
+    "vmap(simulate), 2048 seed starts": (
+        "scene = s.scenes.seed(); m = s.RKMK4()\n"
+        "R0s = s.random_rotation(jax.random.key(0), (2048,))",
+        "out = jax.vmap(lambda R: s.simulate(scene, m, 1e-2, 1000, 1000, R0=R).R)(R0s)",
+    ),
+    "grad of expected_cost, 16 starts": (
+        "scene = s.scenes.seed(); R0, W0 = s.initial_states(jax.random.key(0), 16)\n"
+        "k = jax.numpy.array([8.81, 2.54])",
+        "out = jax.grad(lambda k: s.expected_cost(scene, k[0], k[1], R0, W0, s.RKMK4(),"
+        " 1e-2, 1000))(k)",
     ),
 }
 
@@ -95,10 +114,14 @@ print(json.dumps({"import_s": t_import, "cold_s": times[0], "warm_s": times[1],
 """
 
 
-def _child(entry: str, path: str | None) -> dict:
+def _child(entry: str, path: str | None, cache: str | None = None) -> dict:
     env = dict(os.environ)
     if path:  # the other checkout's package first on the path
         env["PYTHONPATH"] = os.pathsep.join([path] + env.get("PYTHONPATH", "").split(os.pathsep))
+    if cache:  # JAX reads its flags from these variables: store every program
+        env["JAX_COMPILATION_CACHE_DIR"] = cache
+        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+        env["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
     out = subprocess.run(
         [sys.executable, "-c", _CHILD, json.dumps(ENTRIES[entry])],
         env=env,
@@ -123,16 +146,33 @@ def _label(path: str) -> str:
 def main():
     def extra(p):
         p.add_argument("--baseline", default=None, help="a checkout whose so3jax is the baseline")
+        p.add_argument(
+            "--persistent-cache",
+            action="store_true",
+            help="add a column with JAX's persistent compilation cache on (filled first)",
+        )
 
     args = C.parse_args(__doc__.splitlines()[0], extra)
     entries = ["scenes.seed()"] if args.quick else list(ENTRIES)
     repeats = 1 if args.quick else args.repeats
-    codes = {"current": None} | ({_label(args.baseline): args.baseline} if args.baseline else {})
+    codes = {"current": (None, None)}
+    if args.baseline:
+        codes[_label(args.baseline)] = (args.baseline, None)
+    cache_dir = None
+    if args.persistent_cache:
+        cache_dir = tempfile.mkdtemp(prefix="so3jax-startup-cache-")
+        codes["current, persistent cache"] = (None, cache_dir)
+        for e in C.progress(entries, "filling the cache"):
+            _child(e, None, cache_dir)
     runs = {(e, c): [] for e in entries for c in codes}
-    for _ in C.progress(range(repeats), "repeats"):
-        for e in entries:
-            for c, path in codes.items():  # alternated: both see the same machine
-                runs[e, c].append(_child(e, path))
+    try:
+        for _ in C.progress(range(repeats), "repeats"):
+            for e in entries:
+                for c, (path, cache) in codes.items():  # alternated: same machine for all
+                    runs[e, c].append(_child(e, path, cache))
+    finally:
+        if cache_dir:
+            shutil.rmtree(cache_dir, ignore_errors=True)
     rows = []
     for (e, c), rs in runs.items():
         cold = [r["cold_s"] for r in rs]
@@ -149,9 +189,12 @@ def main():
             }
         )
     base = {r["entry"]: r["cold_s"] for r in rows if r["code"].startswith("baseline")}
+    plain = {r["entry"]: r["cold_s"] for r in rows if r["code"] == "current"}
     for row in rows:
         b = base.get(row["entry"])
         row["speedup_vs_baseline"] = b / row["cold_s"] if b else None
+        if row["code"] == "current, persistent cache":
+            row["speedup_vs_no_cache"] = plain[row["entry"]] / row["cold_s"]
     C.print_table(
         rows,
         ["entry", "code", "cold_s", "cold_max_s", "warm_s", "compiles", "import_s"],
@@ -164,6 +207,7 @@ def main():
             "benchmark": "startup",
             "quick": args.quick,
             "baseline": args.baseline,
+            "persistent_cache": args.persistent_cache,
             "env": C.environment(),
             "rows": rows,
         },

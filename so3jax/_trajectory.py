@@ -114,15 +114,25 @@ def _check_int(value, name: str, minimum: int) -> int:
 
 
 def _check_dt(dt, dtype) -> Array:
+    """``dt`` as a scalar of ``dtype``, checked positive and finite.
+
+    A concrete value (a Python float, a NumPy or JAX array) is checked here, before
+    conversion: under an active trace the conversion stages it, and a staged check
+    would need `eqx.error_if`, whose host callback keeps JAX's persistent compilation
+    cache from storing the program (`jax_compilation_cache_dir`). Only a ``dt`` that
+    is itself traced (an argument of the caller's ``jit``) gets `eqx.error_if`.
+    """
+    if _is_concrete(dt):
+        v = np.asarray(dt)
+        if v.shape != ():
+            raise ValueError(f"dt must be a scalar, got shape {v.shape}")
+        if not np.isfinite(float(v)) or float(v) <= 0:
+            raise ValueError(f"dt must be positive and finite, got {float(v)}")
+        return _to_dtype(dt, dtype)
     dt = _to_dtype(dt, dtype)
     if dt.shape != ():
         raise ValueError(f"dt must be a scalar, got shape {dt.shape}")
-    if _is_concrete(dt):
-        if not np.isfinite(float(dt)) or float(dt) <= 0:
-            raise ValueError(f"dt must be positive and finite, got {float(dt)}")
-    else:
-        dt = eqx.error_if(dt, ~(dt > 0), "dt must be positive and finite")
-    return dt
+    return eqx.error_if(dt, ~(dt > 0), "dt must be positive and finite")
 
 
 def settling_time(t: Array, inside: Array) -> Array:

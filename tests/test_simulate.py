@@ -256,6 +256,42 @@ def test_traced_bad_dt_raises_under_jit(jit, dt):
         jax.block_until_ready(run(dt))
 
 
+@pytest.mark.parametrize("dt", [-0.1, np.nan, np.float32(0.0)])
+def test_constant_bad_dt_raises_while_tracing(dt):
+    """A Python or NumPy ``dt`` under the caller's ``jit`` is checked before it is staged."""
+    with pytest.raises(ValueError, match="dt must be positive"):
+        jax.jit(lambda R0: so3jax.simulate(free_body(), so3jax.LieEuler(), dt, 4, R0=R0).R)(
+            jnp.eye(3)
+        )
+
+
+def test_programs_with_a_constant_dt_have_no_host_callback():
+    """JAX's persistent compilation cache does not store a program with a host callback
+    (`eqx.error_if` has one): with ``dt`` a Python float, the programs users jit (a batch
+    of `simulate`, the gradient of `expected_cost`, fixed-step `simulate_ambient`) have none;
+    a traced ``dt`` keeps its checked error."""
+    sc = so3jax.scenes.seed()
+    R0s = so3jax.random_rotation(jax.random.key(0), (4,))
+    R0, W0 = so3jax.initial_states(jax.random.key(1), 2)
+
+    def callbacks(fn, *args):
+        return str(jax.make_jaxpr(fn)(*args)).count("callback")
+
+    def batch(R0s):
+        return jax.vmap(lambda R: so3jax.simulate(sc, so3jax.RKMK4(), 0.01, 4, 2, R0=R).R)(R0s)
+
+    def cost(k):
+        return so3jax.expected_cost(sc, k[0], k[1], R0, W0, so3jax.RKMK4(), 1e-2, 4)
+
+    def ambient(scene):
+        return so3jax.simulate_ambient(scene, "rk4", dt=0.01, n_steps=4).R
+
+    assert callbacks(batch, R0s) == 0
+    assert callbacks(jax.grad(cost), jnp.array([8.81, 2.54])) == 0
+    assert callbacks(ambient, sc) == 0
+    assert callbacks(_run_traced_dt, 0.1) > 0  # the traced dt's check
+
+
 # --------------------------------------------------------------------------
 # Divergence is a status, not an exception, and stays in its own run
 # --------------------------------------------------------------------------
