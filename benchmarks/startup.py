@@ -222,7 +222,7 @@ def main():
             ax.text(b.get_width(), b.get_y() + h / 2, f" {v['compiles']}", va="center", fontsize=7)
     ax.set_yticks(y + h * (len(codes) - 1) / 2, entries, fontsize=8)
     ax.invert_yaxis()
-    ax.set_xlabel("first call in a fresh process (s); labels: XLA compilations")
+    ax.set_xlabel("first call in a fresh process (s); labels: XLA programs compiled (or loaded)")
     ax.legend(fontsize=8)
     C.save_figure(fig, png_path)
 
