@@ -123,7 +123,8 @@ def _check_dt(dt, dtype) -> Array:
     is itself traced (an argument of the caller's ``jit``) gets `eqx.error_if`.
     """
     if _is_concrete(dt):
-        v = np.asarray(dt)
+        with np.errstate(over="ignore", under="ignore"):  # in the run's dtype: 1e-50 is 0
+            v = np.asarray(dt, dtype)  # in float32, 1e300 is inf
         if v.shape != ():
             raise ValueError(f"dt must be a scalar, got shape {v.shape}")
         if not np.isfinite(float(v)) or float(v) <= 0:

@@ -174,6 +174,14 @@ def test_rejects_bad_dt(dt):
         so3jax.simulate(free_body(), so3jax.LieEuler(), dt, 10)
 
 
+def test_rejects_dt_that_is_zero_in_the_runs_dtype():
+    """``dt`` is checked in the scene's dtype: 1e-50 is 0 in float32, 1e300 is inf."""
+    sc = so3jax.scenes.seed(dtype=jnp.float32)
+    for dt in (1e-50, 1e300):
+        with pytest.raises(ValueError, match="dt must be positive and finite"):
+            so3jax.simulate(sc, so3jax.LieEuler(), dt, 10)
+
+
 def test_rejects_non_scalar_dt():
     with pytest.raises(ValueError, match="dt must be a scalar"):
         so3jax.simulate(free_body(), so3jax.LieEuler(), jnp.array([0.1, 0.2]), 10)
