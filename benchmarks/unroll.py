@@ -55,6 +55,12 @@ def unrolled(u):
         jax.clear_caches()
 
 
+def row(part, what, batch, u, r, **extra):
+    """One result row: what was run, at which unroll, its run and compile time."""
+    return dict(part=part, what=what, batch=batch, unroll=u, run_s=r["run_s"],
+                compile_s=r["compile_s"], **extra)  # fmt: skip
+
+
 def timed(fn, x, u, repeats, lay="default"):
     with layout(lay), unrolled(u):
         return C.compile_and_time(fn, x, repeats=repeats)
@@ -75,14 +81,12 @@ def main():
     reps = args.repeats
     rows = []
 
-    def record(row):
-        rows.append(row)
-        extra = (
-            f"  {row['body_steps_per_s']:9.3g} body-steps/s" if "body_steps_per_s" in row else ""
-        )
+    def record(e):
+        rows.append(e)
+        extra = f"  {e['body_steps_per_s']:9.3g} body-steps/s" if "body_steps_per_s" in e else ""
         print(
-            f"{row['part']:11s} {row['what']:28s} B={row['batch']:8d} unroll {row['unroll']:3d}"
-            f"  run {row['run_s'] * 1e3:9.3f} ms  compile {row['compile_s']:6.2f} s{extra}",
+            f"{e['part']:11s} {e['what']:28s} B={e['batch']:8d} unroll {e['unroll']:3d}"
+            f"  run {e['run_s'] * 1e3:9.3f} ms  compile {e['compile_s']:6.2f} s{extra}",
             flush=True,
         )
         C.write_partial(args, "unroll", rows)
@@ -95,17 +99,7 @@ def main():
         fn = T.runner("diffrax Tsit5", scene, None, 0, t1=cal["T"], tol=cal["tsit5_tol"])
         r = timed(fn, R0s, 1, min(reps, 3))
         tsit5 = r["run_s"]
-        record(
-            dict(
-                part="equal",
-                what="diffrax Tsit5",
-                batch=B,
-                unroll=1,
-                run_s=tsit5,
-                compile_s=r["compile_s"],
-                speedup_over_tsit5=1.0,
-            )
-        )
+        record(row("equal", "diffrax Tsit5", B, 1, r, speedup_over_tsit5=1.0))
         labels = (
             ["RKMK4 default"] if args.quick else ["RKMK4 default", "RKMKTsit5-cayley scalarized"]
         )
@@ -115,18 +109,9 @@ def main():
             for u in args.unroll:
                 r = timed(fn, R0s, u, min(reps, 3))
                 record(
-                    dict(
-                        part="equal",
-                        what=label,
-                        batch=B,
-                        unroll=u,
-                        run_s=r["run_s"],
-                        compile_s=r["compile_s"],
-                        n_steps=n,
-                        us_per_step=r["run_s"] / n * 1e6,
-                        speedup_over_tsit5=tsit5 / r["run_s"],
-                    )
-                )
+                    row("equal", label, B, u, r, n_steps=n, us_per_step=r["run_s"] / n * 1e6,
+                        speedup_over_tsit5=tsit5 / r["run_s"])
+                )  # fmt: skip
 
     if "throughput" in args.parts:
         n = 20 if args.quick else 100
@@ -143,19 +128,11 @@ def main():
             for lay in ("default", "array") if B <= 65536 else ("default",):
                 for u in args.unroll:
                     r = timed(fn, R0s, u, reps, lay)
+                    finite = bool(np.all(np.isfinite(np.asarray(r["out"][1]))))
                     record(
-                        dict(
-                            part="throughput",
-                            what=f"RKMK4 float32 {lay}",
-                            batch=B,
-                            unroll=u,
-                            layout=lay,
-                            run_s=r["run_s"],
-                            compile_s=r["compile_s"],
-                            body_steps_per_s=B * n / r["run_s"],
-                            finite=bool(np.all(np.isfinite(np.asarray(r["out"][1])))),
-                        )
-                    )
+                        row("throughput", f"RKMK4 float32 {lay}", B, u, r, layout=lay,
+                            body_steps_per_s=B * n / r["run_s"], finite=finite)
+                    )  # fmt: skip
 
     if "derivatives" in args.parts:
         n = 100 if args.quick else 1000
@@ -172,18 +149,8 @@ def main():
         for what, fn in (("forward pass", lambda k: cost(k, None)), ("grad", jax.grad(cost))):
             for u in args.unroll:
                 r = timed(fn, k, u, reps)
-                record(
-                    dict(
-                        part="derivatives",
-                        what=what,
-                        batch=B,
-                        unroll=u,
-                        run_s=r["run_s"],
-                        compile_s=r["compile_s"],
-                        n_steps=n,
-                        value=np.asarray(r["out"]).tolist(),
-                    )
-                )
+                value = np.asarray(r["out"]).tolist()
+                record(row("derivatives", what, B, u, r, n_steps=n, value=value))
 
     json_path, _ = C.output_paths(args, "unroll")
     C.write_json(json_path, {"env": C.environment(), "rows": rows})
