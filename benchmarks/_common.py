@@ -8,6 +8,7 @@ with `jax.block_until_ready` over repeats and keeps the minimum. Results go to
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import math
@@ -53,6 +54,37 @@ def progress(iterable, desc: str, total: int | None = None):
     except ImportError:  # pragma: no cover
         return iterable
     return tqdm(iterable, desc=desc, total=total, leave=False, file=sys.stderr)
+
+
+@contextlib.contextmanager
+def engine_settings(**values):
+    """Trace with `so3jax._engine`'s module settings replaced, restored on exit.
+
+    A dict setting (``BATCHED_LAYOUT``, ``GPU_LAYOUT``) is updated in place with the
+    given entries; any other (``SCAN_UNROLL``) is set. JAX's caches are cleared on
+    entry and exit: JAX caches the batched jaxpr of every jitted function inside
+    `simulate`, so without clearing, a trace after the first reuses the first one's
+    settings whatever they now say (the S30 GPU run's "array" rows were the default
+    program for that reason).
+    """
+    from so3jax import _engine
+
+    def apply(settings):
+        for k, v in settings.items():
+            if isinstance(getattr(_engine, k), dict):
+                getattr(_engine, k).update(v)
+            else:
+                setattr(_engine, k, v)
+
+    saved = {k: getattr(_engine, k) for k in values}
+    saved = {k: v.copy() if isinstance(v, dict) else v for k, v in saved.items()}
+    jax.clear_caches()
+    apply(values)
+    try:
+        yield
+    finally:
+        apply(saved)
+        jax.clear_caches()
 
 
 def compile_fn(fn, *args) -> tuple[object, float, int | None]:

@@ -19,8 +19,6 @@ Writes ``results/layouts[-<backend>][-quick].json`` (a ``.partial.json`` as it g
 
 from __future__ import annotations
 
-import contextlib
-
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -37,23 +35,15 @@ METHODS = {k: v for k, v in C.lie_methods().items() if k != "RKMK45"}
 METHODS["RKMK4-cayley"] = lambda: s.RKMK4(coords="cayley")
 
 
-@contextlib.contextmanager
 def layout(name):
-    """``"default"``: the engine's table; ``"array"``: the array program for every batch."""
-    saved, saved_gpu = dict(_engine.BATCHED_LAYOUT), dict(_engine.GPU_LAYOUT)
-    # JAX caches the batched jaxpr of every jitted function inside `simulate`: without
-    # clearing, a trace after the first reuses the first one's layout whatever the table
-    # says (the S30 GPU run's "array" rows were the default program for that reason).
-    jax.clear_caches()
-    if name == "array":
-        _engine.BATCHED_LAYOUT.update({k: (None, None) for k in saved})
-        _engine.GPU_LAYOUT.update({k: (None, None) for k in saved_gpu})
-    try:
-        yield
-    finally:
-        _engine.BATCHED_LAYOUT.update(saved)
-        _engine.GPU_LAYOUT.update(saved_gpu)
-        jax.clear_caches()
+    """``"default"``: the engine's tables; ``"array"``: the array program for every batch."""
+    if name == "default":
+        return C.engine_settings()
+    never = {
+        table: {k: (None, None) for k in getattr(_engine, table)}
+        for table in ("BATCHED_LAYOUT", "GPU_LAYOUT")
+    }
+    return C.engine_settings(**never)
 
 
 def throughput_row(method, dtype, B, lay, repeats):

@@ -25,7 +25,6 @@ Writes ``results/unroll[-<backend>][-quick].json`` (a ``.partial.json`` as it go
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
 
 import jax
@@ -39,20 +38,11 @@ import throughput as T  # noqa: E402
 from layouts import layout  # noqa: E402
 
 import so3jax as s  # noqa: E402
-from so3jax import _engine  # noqa: E402
 
 
-@contextlib.contextmanager
 def unrolled(u):
     """Trace the engine's step loops with ``unroll=u`` (JAX's caches cleared around it)."""
-    saved = _engine.SCAN_UNROLL
-    jax.clear_caches()
-    _engine.SCAN_UNROLL = u
-    try:
-        yield
-    finally:
-        _engine.SCAN_UNROLL = saved
-        jax.clear_caches()
+    return C.engine_settings(SCAN_UNROLL=u)
 
 
 def row(part, what, batch, u, r, **extra):
