@@ -129,7 +129,7 @@ def _check_dt(dt, dtype) -> Array:
             raise ValueError(f"dt must be a scalar, got shape {v.shape}")
         if not np.isfinite(float(v)) or float(v) <= 0:
             raise ValueError(f"dt must be positive and finite, got {float(v)}")
-        return _to_dtype(dt, dtype)
+        return _to_dtype(v, dtype)
     dt = _to_dtype(dt, dtype)
     if dt.shape != ():
         raise ValueError(f"dt must be a scalar, got shape {dt.shape}")
