@@ -11,10 +11,11 @@ side by side in one process:
 - derivatives: the forward pass and ``jax.grad`` of the mean tracking cost
   (`expected_cost`, RKMK4, dt = 1e-2, 1000 steps) with respect to (k_R, k_Omega).
 
-Writes ``results/layouts[-<backend>][-quick].json`` (a ``.partial.json`` as it goes).
+Writes ``results/layouts[-check][-<backend>][-quick].json`` (a ``.partial.json`` as it goes).
 
     python benchmarks/layouts.py            # GPU sizes (B up to 2^20)
     python benchmarks/layouts.py --quick    # smoke run: small batches
+    python benchmarks/layouts.py --check    # only the rows around GPU_LAYOUT's cut (4096)
 """
 
 from __future__ import annotations
@@ -101,8 +102,22 @@ def derivative_rows(B, lay, repeats, n=1000):
 
 
 def main():
-    args = C.parse_args(__doc__.splitlines()[0])
-    if args.quick:
+    def extra(p):
+        p.add_argument(
+            "--check",
+            action="store_true",
+            help="only the rows around the GPU table's cut: RKMK4 at 2048 and 4096 runs, "
+            "derivatives at 256",
+        )
+
+    args = C.parse_args(__doc__.splitlines()[0], extra)
+    name = "layouts-check" if args.check else "layouts"
+    if args.check:
+        jobs = [("RKMK4", "float32", 2048), ("RKMK4", "float32", 4096), ("RKMK4", "float64", 2048)]
+        dbatches = [256]
+        if args.quick:
+            jobs, dbatches = [(m, d, B // 32) for m, d, B in jobs], [8]
+    elif args.quick:
         jobs = [("RKMK4", "float32", 64), ("LGVI", "float32", 64)]
         dbatches = [64]
     else:
@@ -121,7 +136,7 @@ def main():
                 f"  run {r['run_s'] * 1e3:8.2f} ms  compile {r['compile_s']:5.1f} s",
                 flush=True,
             )
-            C.write_partial(args, "layouts", rows)
+            C.write_partial(args, name, rows)
     for B in dbatches:
         for lay in ("default", "array"):
             for r in derivative_rows(B, lay, args.repeats):
@@ -131,8 +146,8 @@ def main():
                     f"  compile {r['compile_s']:5.1f} s",
                     flush=True,
                 )
-            C.write_partial(args, "layouts", rows)
-    json_path, _ = C.output_paths(args, "layouts")
+            C.write_partial(args, name, rows)
+    json_path, _ = C.output_paths(args, name)
     C.write_json(json_path, {"env": C.environment(), "rows": rows})
 
 

@@ -151,9 +151,20 @@ def main():
             action="store_true",
             help="add a column with JAX's persistent compilation cache on (filled first)",
         )
+        p.add_argument(
+            "--entries",
+            nargs="+",
+            default=None,
+            metavar="SUBSTRING",
+            help="only the entries whose name contains one of these (e.g. simulate grad)",
+        )
 
     args = C.parse_args(__doc__.splitlines()[0], extra)
     entries = ["scenes.seed()"] if args.quick else list(ENTRIES)
+    if args.entries:
+        entries = [e for e in ENTRIES if any(k in e for k in args.entries)]
+        if not entries:
+            raise SystemExit(f"no entry matches {args.entries}; entries: {list(ENTRIES)}")
     repeats = 1 if args.quick else args.repeats
     codes = {"current": (None, None)}
     if args.baseline:
