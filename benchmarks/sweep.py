@@ -31,7 +31,7 @@ matplotlib.use("Agg")
 import _common as C  # noqa: E402
 
 import so3jax as so3  # noqa: E402
-from so3jax import _plot_sweep  # noqa: E402
+from so3jax import _engine, _plot_sweep  # noqa: E402
 from so3jax._integrators import METHODS, method_by_name  # noqa: E402
 
 
@@ -44,6 +44,8 @@ def run(
     kw = dict(
         key=jax.random.key(0), dt=1e-2, n_steps=n_steps, method=METHODS[method](), progress=False
     )
+    if chunk is None:  # sweep's own default for these devices and this run
+        chunk = _engine.sweep_chunk(jax.devices(), n_steps + 1, np.dtype(dtype).itemsize)
     chunk = min(chunk, n_grid * n_grid * n_att)
     # Warm-up: one chunk of the same shape (a list of gain pairs x the same
     # attitudes), so the timed sweep reuses everything compiled.
@@ -88,7 +90,12 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--out", default=str(Path(__file__).parent / "results"))
-    p.add_argument("--chunk-size", type=int, default=2048)
+    p.add_argument(
+        "--chunk-size",
+        type=int,
+        default=None,
+        help="runs per chunk (default: sweep's own, 1024 per CPU device, 65536 per GPU)",
+    )
     p.add_argument(
         "--method",
         type=method_by_name,

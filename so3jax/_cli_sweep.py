@@ -152,7 +152,12 @@ def sweep_parser() -> argparse.ArgumentParser:
         help="a quadrotor's settling threshold on |e_x| in m (default: %(default)s)",
     )
     p.add_argument("--save-every", type=int, default=1)
-    p.add_argument("--chunk-size", type=int, default=2048, help="runs per chunk")
+    p.add_argument(
+        "--chunk-size",
+        type=int,
+        default=None,
+        help="runs per chunk (default: sweep's, 1024 per CPU device, up to 65536 per GPU)",
+    )
     p.add_argument(
         "--refine",
         type=int,
@@ -219,7 +224,7 @@ def sweep_main(argv=None) -> int:
             "n-kOmega": args.n_kOmega,
             "n-attitudes": args.n_attitudes,
             "save-every": args.save_every,
-            "chunk-size": args.chunk_size,
+            **({} if args.chunk_size is None else {"chunk-size": args.chunk_size}),
         },
     )
     if args.refine < 0:

@@ -351,3 +351,35 @@ def test_gpu_layout_table(monkeypatch):
         monkeypatch.undo()
         jax.clear_caches()
     assert _engine.batched_layout("run") == _engine.BATCHED_LAYOUT["run"]
+
+
+def test_sweep_chunk_default_per_platform():
+    """`sweep`'s default chunk: 1024 runs per CPU device; on a GPU 65536 per device, cut
+    to half the smallest device's memory, never below 1024."""
+
+    class FakeGPU:
+        platform = "gpu"
+
+        def __init__(self, limit):
+            self.limit = limit
+
+        def memory_stats(self):
+            if self.limit == "raise":
+                raise RuntimeError("no statistics")
+            return None if self.limit is None else {"bytes_limit": self.limit}
+
+    cpu = jax.devices("cpu")[0]
+    assert _engine.sweep_chunk([cpu], 1001, 8) == 1024
+    assert _engine.sweep_chunk([cpu] * 3, 10**6, 8) == 3 * 1024
+    big = 141 * 2**30
+    assert _engine.sweep_chunk([FakeGPU(big)], 1001, 8) == 65536
+    assert _engine.sweep_chunk([FakeGPU(big)] * 2, 1001, 4) == 2 * 65536
+    # 40 GiB, 1001 points of 48 float64 numbers: half holds 55,868 runs.
+    per = (40 * 2**30 // 2) // (1001 * 48 * 8)
+    assert 1024 < per < 65536
+    assert _engine.sweep_chunk([FakeGPU(40 * 2**30)], 1001, 8) == per
+    # The smallest device decides; unknown memory counts as 16 GiB; never below 1024.
+    small = [FakeGPU(big), FakeGPU(40 * 2**30)]
+    assert _engine.sweep_chunk(small, 1001, 8) == 2 * per
+    assert _engine.sweep_chunk([FakeGPU(None)], 1001, 8) == (8 * 2**30) // (1001 * 384)
+    assert _engine.sweep_chunk([FakeGPU("raise")], 10**6, 8) == 1024
