@@ -887,7 +887,7 @@ def sweep(
     stable_run = st.reshape(-1)
     n_runs = G * n_att
     n_dev = len(devices)
-    if chunk_size is None:  # the fewest chunks, evenly filled (a last chunk is padded)
+    if chunk_size is None:  # the fewest chunks, evenly filled (not full ones and a padded last)
         cap = sweep_chunk(devices, n_steps // save_every + 1, jnp.dtype(dtype).itemsize)
         chunk_size = -(-n_runs // -(-n_runs // cap))
     chunk = min(chunk_size, n_runs)
