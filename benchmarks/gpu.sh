@@ -7,7 +7,8 @@
 #
 # SCALE=full (default) for the GPU sizes (on S30's H100 and S31's H200 leases these steps
 # took about 300 s, after a machine start of about 30 s; S31 added the default-chunk
-# sweep); SCALE=smoke runs the same steps at CPU sizes (checks the plumbing here).
+# sweep, 390 s on S32's H200; S32 the array-program sweep, about 40 s more);
+# SCALE=smoke runs the same steps at CPU sizes (checks the plumbing here).
 # `layouts.py` (about 220 s on the H100) is a second call when time is left. Results:
 # OUT_DIR/gpu.log and OUT_DIR/gpu-results.tar.gz (the scripts' <name>-gpu.json / .png).
 set -u
@@ -53,5 +54,11 @@ step "${lim[3]}" "gain sweep" $py "$here/sweep.py" --out "$res/sweep" --chunk-si
 mkdir -p "$res/sweep-chunk1024"
 step "${lim[3]}" "gain sweep, default chunk" $py "$here/sweep.py" --out "$res/sweep-chunk1024" \
   --chunk-size 1024 $q
+# The array program for the same sweep (`sweep(..., scalarize=False)`): it compiles in
+# about 2 s against 12.8 s (S32, H200); its first sweep against the default's says which a
+# one-off sweep on a GPU wants.
+mkdir -p "$res/sweep-array"
+step "${lim[3]}" "gain sweep, array program" $py "$here/sweep.py" --out "$res/sweep-array" \
+  --chunk-size $chunk --array $q
 tar -C "$res" -czf "$out/gpu-results.tar.gz" . && rm -rf "$res"
 echo "=== done after $SECONDS s" >>"$log"

@@ -7,10 +7,12 @@ warm-up sweep with the same chunk shape, then the whole sweep once: it compiles 
 re-runs of runs past the step limit); the figure is the second sweep's runs per second and
 body-steps per second, with float32 as a ratio to float64 in the same run.
 
-Writes ``results/sweep[-quick].json`` and ``.png``.
+Writes ``results/sweep[-quick].json`` and ``.png`` (``--array``, the array program:
+``sweep-array[-quick]``).
 
     python benchmarks/sweep.py            # full
     python benchmarks/sweep.py --quick    # smoke run: 8 x 8 grid x 4 attitudes, LieEuler
+    python benchmarks/sweep.py --array    # sweep(..., scalarize=False) beside the default
 """
 
 from __future__ import annotations
@@ -36,13 +38,25 @@ from so3jax._integrators import METHODS, method_by_name  # noqa: E402
 
 
 def run(
-    dtype: str, n_grid: int, n_att: int, n_steps: int, chunk: int, method: str, quick: bool
+    dtype: str,
+    n_grid: int,
+    n_att: int,
+    n_steps: int,
+    chunk: int,
+    method: str,
+    quick: bool,
+    scalarize: bool = True,
 ) -> dict:
     scene = so3.scenes.seed(dtype=dtype)
     k_R = np.geomspace(1.0, 100.0, n_grid)
     k_O = np.geomspace(0.3, 30.0, n_grid)
     kw = dict(
-        key=jax.random.key(0), dt=1e-2, n_steps=n_steps, method=METHODS[method](), progress=False
+        key=jax.random.key(0),
+        dt=1e-2,
+        n_steps=n_steps,
+        method=METHODS[method](),
+        progress=False,
+        scalarize=scalarize,
     )
     if chunk is None:  # sweep's own default for these devices and this run
         chunk = _engine.sweep_chunk(jax.devices(), n_steps + 1, np.dtype(dtype).itemsize)
@@ -72,6 +86,7 @@ def run(
         "n_runs": n_runs,
         "n_steps": n_steps,
         "chunk_size": chunk,
+        "scalarize": scalarize,
         "seconds": seconds,
         "first_chunk_with_compile_s": compile_s,
         "first_sweep_s": first_s,
@@ -102,13 +117,18 @@ def main(argv=None):
         default=None,
         help=f"one of {', '.join(METHODS)} (default RKMK4; --quick: LieEuler)",
     )
+    p.add_argument(
+        "--array",
+        action="store_true",
+        help="sweep(..., scalarize=False): the array program (writes sweep-array*.json)",
+    )
     args = p.parse_args(argv)
     # --quick is a smoke run: small sizes and the one-stage method (compiling
     # the scalarized RKMK4 chunk alone takes several seconds).
     n_grid, n_att, n_steps = (8, 4, 200) if args.quick else (64, 16, 1000)
     method = args.method or ("LieEuler" if args.quick else "RKMK4")
     rows = [
-        run(dt, n_grid, n_att, n_steps, args.chunk_size, method, args.quick)
+        run(dt, n_grid, n_att, n_steps, args.chunk_size, method, args.quick, not args.array)
         for dt in ("float64", "float32")
     ]
     for r in rows:
@@ -122,7 +142,7 @@ def main(argv=None):
     print(f"float32 / float64 throughput: {ratio:.2f}x")
     args.out = Path(args.out)
     args.out.mkdir(parents=True, exist_ok=True)
-    json_path, png_path = C.output_paths(args, "sweep")
+    json_path, png_path = C.output_paths(args, "sweep-array" if args.array else "sweep")
     C.write_json(
         json_path,
         {
