@@ -6,8 +6,8 @@
 #   bash benchmarks/gpu.sh OUT_DIR [SCALE]
 #
 # SCALE=full (default) for the GPU sizes (on S30's H100 and S31's H200 leases these steps
-# took about 300 s, after a machine start of about 30 s; S31 added the default-chunk
-# sweep, 390 s on S32's H200; S32 the array-program sweep, about 40 s more);
+# took about 300 s, after a machine start of about 30 s; S32's run, with a sweep at a
+# chunk of 1024 runs since dropped, 390 s; S32 added the array-program sweep);
 # SCALE=smoke runs the same steps at CPU sizes (checks the plumbing here).
 # `layouts.py` (about 220 s on the H100) is a second call when time is left. Results:
 # OUT_DIR/gpu.log and OUT_DIR/gpu-results.tar.gz (the scripts' <name>-gpu.json / .png).
@@ -49,11 +49,6 @@ step "${lim[2]}" "equal accuracy" $tp --out "$res/tp" --equal-only \
   --calibration "$here/results/throughput.json" \
   --variants "RKMK4 default" "RKMK4-cayley scalarized" "RKMKTsit5-cayley scalarized"
 step "${lim[3]}" "gain sweep" $py "$here/sweep.py" --out "$res/sweep" --chunk-size $chunk $q
-# The same sweep at `sweep`'s default chunk (1024 runs; since S31 the array program on a
-# GPU): whether a GPU wants a larger default chunk.
-mkdir -p "$res/sweep-chunk1024"
-step "${lim[3]}" "gain sweep, default chunk" $py "$here/sweep.py" --out "$res/sweep-chunk1024" \
-  --chunk-size 1024 $q
 # The array program for the same sweep (`sweep(..., scalarize=False)`): it compiles in
 # about 2 s against 12.8 s (S32, H200); its first sweep against the default's says which a
 # one-off sweep on a GPU wants.
