@@ -782,7 +782,7 @@ def sweep(
       ``None``: 1024 per device on CPU; on a GPU 65536 per device (a GPU takes about as
       long for a chunk of 1024 runs as for one of 65536), fewer where the chunk's saved
       points would fill more than half the device's memory; the runs are then spread
-      evenly over the fewest chunks.
+      evenly over the fewest chunks. With several processes, process 0's choice holds.
     - `results_dir`: folder for the chunk files (created; ``None``: keep in memory; with
       several processes, process 0 alone reads and writes it).
     - `overwrite`: discard chunk files of a different sweep in `results_dir`
@@ -888,7 +888,10 @@ def sweep(
     n_runs = G * n_att
     n_dev = len(devices)
     if chunk_size is None:  # the fewest chunks, evenly filled (not full ones and a padded last)
-        cap = sweep_chunk(devices, n_steps // save_every + 1, jnp.dtype(dtype).itemsize)
+        n_saved, itemsize = n_steps // save_every + 1, jnp.dtype(dtype).itemsize
+        # Every process must cut the same chunks: process 0's figure (from the memory of
+        # the devices it can query) holds for all.
+        cap = _shared_json(lambda: {"cap": sweep_chunk(devices, n_saved, itemsize)})["cap"]
         chunk_size = -(-n_runs // -(-n_runs // cap))
     chunk = min(chunk_size, n_runs)
     chunk = -(-chunk // n_dev) * n_dev

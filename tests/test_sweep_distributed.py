@@ -39,7 +39,10 @@ _WORKER = textwrap.dedent(
     jax.config.update("jax_enable_x64", True)
     from jax.experimental import multihost_utils
 
+    import numpy as np
+
     import so3jax as s
+    from so3jax._sweep import RUN_FIELDS
 
     assert jax.process_count() == 2 and len(jax.devices()) == 2, jax.devices()
     kw = dict(SWEEP_KW, method=s.LieEuler(), scalarize=False, progress=False)
@@ -65,6 +68,13 @@ _WORKER = textwrap.dedent(
     resumed = s.sweep(sc, on_chunk=lambda i, n: calls.append(i), **kw)
     assert calls == [2, 3], calls
     resumed.save(folder / f"resumed_{pid}.npz")
+    # The default chunk: process 0 decides it for both (here one chunk of the 8 runs).
+    calls.clear()
+    whole = s.sweep(sc, on_chunk=lambda i, n: calls.append((i, n)),
+                    **{**kw, "chunk_size": None, "results_dir": None})  # fmt: skip
+    assert calls == [(0, 1)], calls
+    for f in RUN_FIELDS:
+        assert np.array_equal(getattr(whole, f), getattr(resumed, f), equal_nan=True), f
     # Chunk files lost: only those chunks are computed again.
     multihost_utils.sync_global_devices("saved")
     if pid == 0:
