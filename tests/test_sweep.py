@@ -63,16 +63,12 @@ def test_reproducible_and_sample_i_independent_of_n(scene, base):
 
 
 def test_chunked_equals_unchunked(scene, base, monkeypatch):
+    def default_chunks():
+        kw = {**SETTINGS, "chunk_size": None}
+        return s.sweep(scene, K_R, K_OMEGA, key=jax.random.key(3), n_attitudes=4, **kw)
+
     # The default chunk (1024 runs per CPU device, `_engine.sweep_chunk`) holds all 24 runs.
-    whole = s.sweep(
-        scene,
-        K_R,
-        K_OMEGA,
-        key=jax.random.key(3),
-        n_attitudes=4,
-        **{**SETTINGS, "chunk_size": None},
-    )
-    assert_same(base, whole, rtol=1e-12)
+    assert_same(base, default_chunks(), rtol=1e-12)
     # A default cap below the run count spreads the runs evenly: 24 runs under a cap of
     # 10 go as 3 chunks of 8 (the shape `base` compiled), not 10 + 10 + 4 padded to 10.
     from so3jax import _engine, _sweep
@@ -85,14 +81,7 @@ def test_chunked_equals_unchunked(scene, base, monkeypatch):
 
     monkeypatch.setitem(_engine.SWEEP_CHUNK, "cpu", 10)
     monkeypatch.setattr(_sweep, "_run_chunk", recorded)
-    spread = s.sweep(
-        scene,
-        K_R,
-        K_OMEGA,
-        key=jax.random.key(3),
-        n_attitudes=4,
-        **{**SETTINGS, "chunk_size": None},
-    )
+    spread = default_chunks()
     assert sizes[:3] == [8, 8, 8]  # then the re-runs of the failed runs
     assert_same(base, spread)
 
