@@ -366,20 +366,18 @@ def sweep_chunk(devices, n_saved: int, itemsize: int) -> int:
     16.1 GiB in float64, 8.3 GiB in float32); 48 leaves room for a quadrotor's state.
     """
     devices = list(devices)
-    platform = devices[0].platform
-    per_device = SWEEP_CHUNK["cpu" if platform == "cpu" else "gpu"]  # a TPU as a GPU
-    if platform != "cpu":
-        limits = []
-        for d in devices:
-            try:
-                limits.append((d.memory_stats() or {}).get("bytes_limit"))
-            except Exception:  # a backend without memory statistics
-                limits.append(None)
-        known = [x for x in limits if x]
-        budget = (min(known) if known else 16 * 2**30) // 2  # unknown: a 16 GiB device
-        fits = budget // max(1, n_saved * 48 * itemsize)
-        per_device = int(max(SWEEP_CHUNK["cpu"], min(per_device, fits)))
-    return per_device * len(devices)
+    if devices[0].platform == "cpu":
+        return SWEEP_CHUNK["cpu"] * len(devices)
+    known = []  # a TPU counts as a GPU
+    for d in devices:
+        try:
+            known.append((d.memory_stats() or {}).get("bytes_limit"))
+        except Exception:  # a backend without memory statistics
+            pass
+    known = [x for x in known if x]
+    budget = (min(known) if known else 16 * 2**30) // 2  # unknown: a 16 GiB device
+    fits = budget // (n_saved * 48 * itemsize)
+    return max(SWEEP_CHUNK["cpu"], min(SWEEP_CHUNK["gpu"], fits)) * len(devices)
 
 
 def batched_layout(what: str) -> tuple:

@@ -887,7 +887,7 @@ def sweep(
     stable_run = st.reshape(-1)
     n_runs = G * n_att
     n_dev = len(devices)
-    if chunk_size is None:  # the fewest chunks, evenly filled (not full ones and a padded last)
+    if chunk_size is None:  # the fewest chunks of equal size, not full ones and a padded last
         n_saved, itemsize = n_steps // save_every + 1, jnp.dtype(dtype).itemsize
         # Every process must cut the same chunks: process 0's figure (from the memory of
         # the devices it can query) holds for all.
