@@ -114,6 +114,41 @@ def test_solver_kinds():
         assert not isinstance(solver, diffrax.AbstractAdaptiveSolver)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_adaptive_step_loops_over_stages(dtype):
+    """The adaptive solvers run stages 1 .. s-1 as one loop (the vector field traced once
+    a step): the same stages as the unrolled ones, to round-off, for every pair, both
+    coordinates, exact and truncated dexp^-1; on the seed (controller, reference)."""
+    from so3jax._integrators import _diffrax as D, _rkmk as RK
+
+    scene = s.scenes.seed(dtype=dtype)
+    y0 = scene.y0  # moved off the start: every stage sees a nonzero error and rate
+    R = y0.R @ s.exp(jnp.array([0.4, -1.1, 0.7], dtype))
+    y = s.LieState(R, y0.x + jnp.linspace(-0.3, 0.5, y0.x.size, dtype=dtype))
+    t, h = jnp.asarray(0.3, dtype), jnp.asarray(0.05, dtype)
+    f0 = scene.vector_field(t, y)
+    # (float32: the controller's gains and cancellations amplify round-off about 1000x)
+    eps = 1e-13 if dtype == jnp.float64 else 1e-4
+    for m in (s.RKMK45(), s.RKMKTsit5(coords="cayley"), s.RKMK32(dexpinv="truncated")):
+        args = (m.tableau, m.dexpinv == "exact", scene, t, y, h)
+        kts, dxs, f = RK.rkmk_stages_looped(*args, f0, m.coords)
+        ref = RK.rkmk_stages(*args, f0=f0, return_last=True, coords=m.coords)
+        assert len(kts) == len(dxs) == m.tableau.stages
+        wants = [*ref[0], *ref[1], ref[2].xi, ref[2].dx]
+        for got, want in zip([*kts, *dxs, f.xi, f.dx], wants, strict=True):
+            assert got.dtype == dtype
+            np.testing.assert_allclose(got, want, rtol=0, atol=eps * np.abs(want).max())
+
+    # One evaluation traced for the first stage and one inside the loop, whatever s.
+    calls = []
+    term = D.LieTerm(lambda t, y, args: calls.append(t) or scene.vector_field(t, y))
+    solver = s.diffrax_solver(s.RKMK45())
+    state = solver.init(term, t, t + h, y, None)
+    calls.clear()
+    jax.make_jaxpr(lambda y: solver.step(term, t, t + h, y, None, state, True)[0])(y)
+    assert len(calls) == 2, calls  # (made_jump: the first stage is evaluated afresh)
+
+
 def test_fixed_step_wrapper_matches_simulate(free):
     # The diffrax wrapper of a fixed-step method takes exactly the steps `simulate`
     # takes; LGVI also needs the scene itself (body, torque), found inside the term.

@@ -42,7 +42,7 @@ from .._state import LieState, LieTangent, retract
 from .._types import Array
 from ._base import AbstractLieSolver, ButcherTableau, lincomb
 from ._cf import CommutatorFree
-from ._rkmk import DOPRI5_TABLEAU, RKMK, RKMK45, rkmk_stages
+from ._rkmk import DOPRI5_TABLEAU, RKMK, RKMK45, rkmk_stages_looped
 
 # --------------------------------------------------------------------------
 # The term
@@ -392,9 +392,10 @@ class DiffraxLieAdaptiveSolver(diffrax.AbstractAdaptiveSolver):
         else:
             f0 = None
         coords = self.method.coords
-        kts, dxs, f_last = rkmk_stages(
-            tab, exact, _TermScene(terms, args), t0, y0, h, f0=f0, return_last=True, coords=coords
-        )
+        scene = _TermScene(terms, args)
+        if f0 is None:  # (not FSAL: the first stage is evaluated here, the rest in a loop)
+            f0 = terms.vf(t0, y0, args)
+        kts, dxs, f_last = rkmk_stages_looped(tab, exact, scene, t0, y0, h, f0, coords)
         u1 = lincomb(tab.b, kts, h)
         dx1 = lincomb(tab.b, dxs, h)
         db = tuple(hi - lo for hi, lo in zip(tab.b, tab.b_low, strict=True))

@@ -15,7 +15,9 @@ Numerical Integration*, 2nd ed., sec. IV.8.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._so3 import _D_SERIES, _cross, _dcayinv, _dexpinv, _dot, _polyval
 from .._state import LieState, increment, retract
@@ -85,6 +87,49 @@ def rkmk_stages(
     if return_last:
         return kts, dxs, f
     return kts, dxs
+
+
+def rkmk_stages_looped(
+    tableau: ButcherTableau, exact: bool, scene, t, y: LieState, h, f0, coords: str = "exp"
+):
+    """`rkmk_stages` with stages ``1 .. s-1`` as one loop (`jax.lax.fori_loop`).
+
+    Returns ``(kts, dxs, f_last)`` like ``rkmk_stages(..., f0=f0, return_last=True)``,
+    to round-off: the stage sums run over the whole row of ``a`` (zeros included)
+    instead of its nonzero entries. The vector field, the retraction and
+    ``dexp^-1`` are traced once instead of once per stage, as diffrax does for its
+    own Runge–Kutta solvers. The adaptive solvers use it: their step sits inside
+    diffrax's loops, which a reverse-mode gradient traces and compiles several times
+    (seed, 2-core CPU: RKMK45's value and gradient through
+    `diffrax.RecursiveCheckpointAdjoint` traced and compiled in 19.6 s against 42.3
+    s unrolled, and ran no slower). The fixed-step methods keep the unrolled stages:
+    the scalarized program has no loops.
+    """
+    s = tableau.stages
+    dtype = y.R.dtype
+    A = np.zeros((s, s))
+    for i, row in enumerate(tableau.a, start=1):
+        A[i, :i] = row
+    A = jnp.asarray(A, dtype)
+    c = jnp.asarray(tableau.c, dtype)
+    K = jnp.zeros((s,) + y.R.shape[:-1], dtype).at[0].set(f0.xi)
+    DX = jnp.zeros((s,) + y.x.shape, y.x.dtype).at[0].set(f0.dx)
+
+    def stage(i, carry):
+        K, DX, _ = carry
+        u = h * jnp.tensordot(A[i], K, axes=1)
+        dx = h * jnp.tensordot(A[i].astype(DX.dtype), DX, axes=1)
+        f = scene.vector_field(t + c[i] * h, retract(y, u, dx, coords))
+        if coords == "cayley":
+            kt = _dcayinv(u, f.xi)
+        elif exact:
+            kt = _dexpinv(u, f.xi)
+        else:
+            kt = _dexpinv_truncated(u, f.xi, tableau.order)
+        return K.at[i].set(kt), DX.at[i].set(f.dx), f
+
+    K, DX, f = jax.lax.fori_loop(1, s, stage, (K, DX, f0))
+    return [K[i] for i in range(s)], [DX[i] for i in range(s)], f
 
 
 class RKMK(AbstractLieSolver):
