@@ -87,6 +87,30 @@ def child(variant: str, method: str, grads: bool) -> dict:
     return row
 
 
+TITLES = {
+    "fwd_compile_s": "forward: trace + compile (s)",
+    "grad_compile_s": "value_and_grad: trace + compile (s)",
+    "fwd_run_s": "forward run (s)",
+    "grad_run_s": "value_and_grad run (s)",
+}
+
+
+def figure(rows: list[dict]):
+    """Bars per method: unrolled against looped stages, one panel per measured time."""
+    keys = [k for k in TITLES if f"looped_{k}" in rows[0]]
+    fig, axes = plt.subplots(1, len(keys), figsize=(3.4 * len(keys), 3.6), squeeze=False)
+    x = np.arange(len(rows))
+    for ax, k in zip(axes[0], keys, strict=True):
+        for j, variant in enumerate(VARIANTS):
+            ax.bar(x + (j - 0.5) * 0.4, [r[f"{variant}_{k}"] for r in rows], 0.4, label=variant)
+        ax.set_xticks(x, [r["method"] for r in rows], rotation=20, fontsize=8)
+        ax.set_title(TITLES[k], fontsize=9)
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle("Adaptive seed runs, 10 s, tol 1e-7: stages unrolled vs one loop", y=1.02)
+    fig.tight_layout()
+    return fig
+
+
 def main():
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
         _, _, variant, method, grads = sys.argv
@@ -132,17 +156,7 @@ def main():
     C.write_json(json_path, {"benchmark": "adaptive-compile", "quick": args.quick,
                              "rounds": rounds, "env": C.environment(), "rows": rows})  # fmt: skip
 
-    keys = [k for k in ("fwd_compile_s", "grad_compile_s", "fwd_run_s", "grad_run_s") if k in u]
-    fig, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 3.4), squeeze=False)
-    x = np.arange(len(rows))
-    for ax, k in zip(axes[0], keys, strict=True):
-        for j, variant in enumerate(VARIANTS):
-            ax.bar(x + (j - 0.5) * 0.4, [r[f"{variant}_{k}"] for r in rows], 0.4, label=variant)
-        ax.set_xticks(x, [r["method"] for r in rows], rotation=20, fontsize=8)
-        ax.set_title(k.replace("_", " ").replace(" s", " (s)"), fontsize=9)
-    axes[0][0].legend(fontsize=8)
-    fig.suptitle("Adaptive seed runs, 10 s, tol 1e-7: stages unrolled vs one loop", fontsize=10)
-    C.save_figure(fig, png_path)
+    C.save_figure(figure(rows), png_path)
 
 
 if __name__ == "__main__":
