@@ -21,7 +21,6 @@ Writes ``results/adaptive-compile[-quick].json`` and ``.png``.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import time
@@ -126,10 +125,9 @@ def main():
     grads = not args.quick
     best: dict[tuple, dict] = {}
     jobs = [(m, v) for _ in range(rounds) for m in methods for v in VARIANTS]
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.path.dirname(__file__), *sys.path]))
     for method, variant in C.progress(jobs, "processes"):
         cmd = [sys.executable, __file__, "--child", variant, method, "1" if grads else "0"]
-        out = subprocess.run(cmd, capture_output=True, text=True, env=env, check=True).stdout
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
         row = json.loads(next(ln[4:] for ln in out.splitlines() if ln.startswith("ROW ")))
         old = best.get((method, variant))
         if old is not None:  # min over rounds, time by time

@@ -119,7 +119,7 @@ def test_adaptive_step_loops_over_stages(dtype):
     """The adaptive solvers run stages 1 .. s-1 as one loop (the vector field traced once
     a step): the same stages as the unrolled ones, to round-off, for every pair, both
     coordinates, exact and truncated dexp^-1; on the seed (controller, reference)."""
-    from so3jax._integrators import _diffrax as D, _rkmk as RK
+    from so3jax._integrators import _rkmk as RK
 
     scene = s.scenes.seed(dtype=dtype)
     y0 = scene.y0  # moved off the start: every stage sees a nonzero error and rate
@@ -141,7 +141,7 @@ def test_adaptive_step_loops_over_stages(dtype):
 
     # One evaluation traced for the first stage and one inside the loop, whatever s.
     calls = []
-    term = D.LieTerm(lambda t, y, args: calls.append(t) or scene.vector_field(t, y))
+    term = s.LieTerm(lambda t, y, args: calls.append(t) or scene.vector_field(t, y))
     solver = s.diffrax_solver(s.RKMK45())
     state = solver.init(term, t, t + h, y, None)
     calls.clear()

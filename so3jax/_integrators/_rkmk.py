@@ -40,6 +40,15 @@ def _dexpinv_truncated(u, v, order: int):
     return out
 
 
+def _pull_back(u, xi, exact: bool, order: int, coords: str):
+    """A stage's body velocity ``xi`` pulled back to the algebra at ``R0`` (``u != 0``)."""
+    if coords == "cayley":
+        return _dcayinv(u, xi)
+    if exact:
+        return _dexpinv(u, xi)
+    return _dexpinv_truncated(u, xi, order)
+
+
 def rkmk_stages(
     tableau: ButcherTableau,
     exact: bool,
@@ -74,15 +83,7 @@ def rkmk_stages(
             f = f0
         else:
             f = scene.vector_field(t + tableau.c[i] * h, Yi)
-        if u is None:
-            kt = f.xi
-        elif coords == "cayley":
-            kt = _dcayinv(u, f.xi)
-        elif exact:
-            kt = _dexpinv(u, f.xi)
-        else:
-            kt = _dexpinv_truncated(u, f.xi, order)
-        kts.append(kt)
+        kts.append(f.xi if u is None else _pull_back(u, f.xi, exact, order, coords))
         dxs.append(f.dx)
     if return_last:
         return kts, dxs, f
@@ -120,12 +121,7 @@ def rkmk_stages_looped(
         u = h * jnp.tensordot(A[i], K, axes=1)
         dx = h * jnp.tensordot(A[i].astype(DX.dtype), DX, axes=1)
         f = scene.vector_field(t + c[i] * h, retract(y, u, dx, coords))
-        if coords == "cayley":
-            kt = _dcayinv(u, f.xi)
-        elif exact:
-            kt = _dexpinv(u, f.xi)
-        else:
-            kt = _dexpinv_truncated(u, f.xi, tableau.order)
+        kt = _pull_back(u, f.xi, exact, tableau.order, coords)
         return K.at[i].set(kt), DX.at[i].set(f.dx), f
 
     K, DX, f = jax.lax.fori_loop(1, s, stage, (K, DX, f0))
