@@ -394,7 +394,23 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
     primitive (a loop, dynamic indexing, `jax.checkpoint` inside the step); the
     batched call then vmaps ``array_fn``, silently: nobody asked for the
     scalarized program.
+
+    ``array_fn`` is traced once per call (`jax.closure_convert`): the
+    ``custom_vmap`` and its batching rule both run that jaxpr instead of tracing
+    ``array_fn`` again (through the derivative programs' ``jvp`` and column
+    ``vmap``, a second trace cost more than batching the first one).
     """
+
+    def call(*args):
+        traced, consts = jax.closure_convert(array_fn, *args)
+        if consts:  # it closes over tracers: trace it as it is
+            return _dual_of(array_fn, scalar_fn, what)(*args)
+        return _dual_of(traced, scalar_fn, what)(*args)
+
+    return call
+
+
+def _dual_of(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
     fn = custom_vmap(array_fn)
 
     @fn.def_vmap

@@ -212,6 +212,31 @@ def test_vmap_of_grad_equals_loop_of_grads():
         assert _rel(np.diag(jac), loop) < 1e-12
 
 
+def test_batched_programs_are_traced_once(monkeypatch):
+    """Under ``vmap`` the array programs are traced once per call: the ``custom_vmap`` and
+    its batching rule share one jaxpr (`_engine._dual`). Tracing them a second time, through
+    the Jacobian's ``jvp`` and column ``vmap``, took about a third of the time to lower the
+    gradient of the seed's mean cost over 16 starts."""
+    traced = {"fwd_array": 0, "jac_array": 0}
+    for name in traced:
+        original = getattr(_engine._Loop, name)
+
+        def spy(self, *args, _original=original, _name=name):
+            traced[_name] += 1
+            return _original(self, *args)
+
+        monkeypatch.setattr(_engine._Loop, name, spy)
+    ps = jnp.array([1.7, -0.4, 2.5])  # fewer runs than the scalarized program takes
+    # A jitted run, as `simulate` and `expected_cost` are: its forward program is traced
+    # (batched) before ``grad`` linearizes it.
+    one = jax.jit(lambda p: _toy(p, "auto"))
+    mean = lambda ps: jnp.mean(jax.vmap(one)(ps))  # noqa: E731
+    grads = jax.jit(jax.grad(mean))(ps)
+    assert traced == {"fwd_array": 1, "jac_array": 1}
+    loop = np.stack([jax.grad(_toy)(p, "autodiff") for p in ps]) / 3
+    assert _rel(grads, loop) < 1e-12
+
+
 def test_checkpointing_keeps_gradients_and_chunks():
     """Any checkpoint length gives the same gradient (the segments are padded)."""
     ref = jax.grad(_toy)(1.7, "autodiff", 21)
