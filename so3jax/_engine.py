@@ -398,14 +398,13 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
     ``array_fn`` is traced once per call (`jax.closure_convert`): the
     ``custom_vmap`` and its batching rule both run that jaxpr instead of tracing
     ``array_fn`` again (through the derivative programs' ``jvp`` and column
-    ``vmap``, a second trace cost more than batching the first one).
+    ``vmap``, a second trace cost more than batching the first one). Tracers it
+    closes over (hoisted by `jax.closure_convert`) stay closed over, as before.
     """
 
     def call(*args):
         traced, consts = jax.closure_convert(array_fn, *args)
-        if consts:  # it closes over tracers: trace it as it is
-            return _dual_of(array_fn, scalar_fn, what)(*args)
-        return _dual_of(traced, scalar_fn, what)(*args)
+        return _dual_of(lambda *a: traced(*a, *consts), scalar_fn, what)(*args)
 
     return call
 
