@@ -116,6 +116,7 @@ print(json.dumps({"import_s": t_import, "cold_s": times[0], "warm_s": times[1],
 
 def _child(entry: str, path: str | None, cache: str | None = None) -> dict:
     env = dict(os.environ)
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)  # cold means cold, whatever the caller's setting
     if path:  # the other checkout's package first on the path
         env["PYTHONPATH"] = os.pathsep.join([path] + env.get("PYTHONPATH", "").split(os.pathsep))
     if cache:  # JAX reads its flags from these variables: store every program
