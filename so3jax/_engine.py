@@ -395,21 +395,139 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
     batched call then vmaps ``array_fn``, silently: nobody asked for the
     scalarized program.
 
-    ``array_fn`` is traced once per call (`jax.closure_convert`): the
-    ``custom_vmap`` and its batching rule both run that jaxpr instead of tracing
-    ``array_fn`` again (through the derivative programs' ``jvp`` and column
-    ``vmap``, a second trace cost more than batching the first one). Tracers it
-    closes over (hoisted by `jax.closure_convert`) stay closed over, as before.
+    ``array_fn`` is traced once per call: the ``custom_vmap`` and its batching
+    rule both run that jaxpr (`_Traced`) instead of tracing ``array_fn`` again
+    (through the derivative programs' ``jvp`` and column ``vmap``, a second trace
+    cost more than batching the first one). Tracers it closes over are constants
+    of the jaxpr, closed over as before.
     """
 
     def call(*args):
-        traced, consts = jax.closure_convert(array_fn, *args)
-        return _dual_of(lambda *a: traced(*a, *consts), scalar_fn, what)(*args)
+        closed, shape = jax.make_jaxpr(array_fn, return_shape=True)(*args)
+        return _dual_of(_Traced(closed, jax.tree.structure(shape)), scalar_fn, what)(*args)
 
     return call
 
 
-def _dual_of(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
+class _Traced:
+    """A traced array program: called as it was traced, or batched with its loops settled.
+
+    Under ``vmap``, a `lax.scan` whose carry starts partly unbatched finds which
+    components become batched by batching its body again until nothing changes:
+    two passes over the forward loop's body for the seed (the step counter and
+    the status start unbatched), two over the Jacobian program's (its tangents
+    start as unbatched zeros), each nested scan once more per pass. `vmap` walks
+    the jaxpr's top-level equations and, before each loop, batches the carry
+    components that its body would batch (`_scan_carry_flags`: the same fixed
+    point, on flags), so that JAX batches each body once. What stays unbatched
+    (the reference attitude a batch shares) stays so. The scalarized programs do
+    the same on their flat components (`sc.settle_batched`).
+    """
+
+    def __init__(self, closed, out_tree):
+        self.closed, self.out_tree = closed, out_tree
+
+    def __call__(self, *args):
+        return self._eval(jax.tree.leaves(args), None, None)
+
+    def vmap(self, axis_size: int, in_batched, args):
+        """``vmap`` of the program over ``args`` (batched per ``in_batched``, on axis 0)."""
+        axes = tuple(jax.tree.map(lambda b: 0 if b else None, ib) for ib in in_batched)
+        flags = [bool(b) for b in jax.tree.leaves(in_batched)]
+
+        def one_run(one, *a):
+            return self._eval(jax.tree.leaves(a), flags, one)
+
+        one = jnp.zeros((axis_size,), jnp.int32)
+        return jax.vmap(one_run, in_axes=(0, *axes))(one, *args)
+
+    def _eval(self, leaves: list, flags: list | None, one):
+        jaxpr = self.closed.jaxpr
+        env = dict(zip(jaxpr.constvars, self.closed.consts, strict=True))
+        env.update(zip(jaxpr.invars, leaves, strict=True))
+        batched = dict.fromkeys(jaxpr.constvars, False)
+        batched.update(zip(jaxpr.invars, flags or [False] * len(leaves), strict=True))
+
+        def read(v):
+            return v.val if isinstance(v, jex_core.Literal) else env[v]
+
+        def is_batched(v):
+            return isinstance(v, jex_core.Var) and batched[v]
+
+        for e in jaxpr.eqns:
+            ins = [read(v) for v in e.invars]
+            bs = [is_batched(v) for v in e.invars]
+            if flags is not None and e.primitive.name == "scan":
+                nc, ncar = e.params["num_consts"], e.params["num_carry"]
+                settled = _scan_carry_flags(e.params["jaxpr"].jaxpr, bs, nc, ncar)
+                for i, (now, then) in enumerate(zip(bs[nc : nc + ncar], settled, strict=True)):
+                    if then and not now:
+                        ins[nc + i], bs[nc + i] = _batch_by(ins[nc + i], one), True
+            with e.ctx.manager:
+                outs = e.primitive.bind(*ins, **e.primitive.get_bind_params(e.params))
+            outs = outs if e.primitive.multiple_results else [outs]
+            env.update(zip(e.outvars, outs, strict=True))
+            batched.update(zip(e.outvars, _eqn_batched(e, bs), strict=True))
+        return jax.tree.unflatten(self.out_tree, [read(v) for v in jaxpr.outvars])
+
+
+def _batch_by(x, one):
+    """``x`` made batched by adding ``one``, a batched zero (values unchanged)."""
+    x = jnp.asarray(x)
+    if x.dtype == jnp.bool_:
+        return jnp.logical_or(x, one != 0)
+    if jnp.issubdtype(x.dtype, jnp.number):
+        return x + one.astype(x.dtype)
+    return x  # (a key, say: JAX's own fixed point batches it if it must)
+
+
+def _flags_through(jaxpr, flags: list) -> list:
+    """Which outputs of ``jaxpr`` a ``vmap`` batches, given which inputs are batched."""
+    env = dict(zip(jaxpr.invars, flags, strict=True))
+
+    def read(v):
+        return isinstance(v, jex_core.Var) and env.get(v, False)
+
+    for e in jaxpr.eqns:
+        env.update(zip(e.outvars, _eqn_batched(e, [read(v) for v in e.invars]), strict=True))
+    return [read(v) for v in jaxpr.outvars]
+
+
+def _scan_carry_flags(body, flags: list, num_consts: int, num_carry: int) -> list:
+    """The batched flags of a scan's carry at the fixed point of its ``body`` (a jaxpr)."""
+    carry = list(flags[num_consts : num_consts + num_carry])
+    while True:
+        ins = flags[:num_consts] + carry + flags[num_consts + num_carry :]
+        out = _flags_through(body, ins)[:num_carry]
+        new = [a or b for a, b in zip(carry, out, strict=True)]
+        if new == carry:
+            return carry
+        carry = new
+
+
+def _eqn_batched(e, flags: list) -> list:
+    """Which outputs of equation ``e`` a ``vmap`` batches (never fewer than JAX does)."""
+    n = len(e.outvars)
+    if not any(flags):
+        return [False] * n
+    name, prm = e.primitive.name, e.params
+    if name == "scan":
+        nc, ncar = prm["num_consts"], prm["num_carry"]
+        body = prm["jaxpr"].jaxpr
+        carry = _scan_carry_flags(body, flags, nc, ncar)
+        ys = _flags_through(body, flags[:nc] + carry + flags[nc + ncar :])[ncar:]
+        return carry + ys
+    if name == "cond" and not flags[0]:
+        branches = [_flags_through(b.jaxpr, flags[1:]) for b in prm["branches"]]
+        return [any(f) for f in zip(*branches, strict=True)]
+    inner = prm.get("jaxpr", prm.get("call_jaxpr"))
+    inner = getattr(inner, "jaxpr", inner)
+    if name in _CALLS and isinstance(inner, jex_core.Jaxpr) and len(inner.invars) == len(flags):
+        return _flags_through(inner, flags)
+    return [True] * n
+
+
+def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str) -> Callable:
     fn = custom_vmap(array_fn)
 
     @fn.def_vmap
@@ -417,7 +535,7 @@ def _dual_of(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
         axes = tuple(jax.tree.map(lambda b: 0 if b else None, ib) for ib in in_batched)
         scalar_from, cut_from = batched_layout(what)
         if scalar_from is None or axis_size < scalar_from:
-            out = jax.vmap(array_fn, in_axes=axes)(*args)
+            out = array_fn.vmap(axis_size, in_batched, args)
             return out, jax.tree.map(lambda _: True, out)
         try:
             cuts = cut_from is not None and axis_size >= cut_from
@@ -434,7 +552,7 @@ def _dual_of(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
                 cut = functools.partial(scalar_fn, cut=index)
                 out = jax.vmap(cut, in_axes=axes)(*args)
         except sc.ScalarizeError:
-            out = jax.vmap(array_fn, in_axes=axes)(*args)
+            out = array_fn.vmap(axis_size, in_batched, args)
         return out, jax.tree.map(lambda _: True, out)
 
     return fn

@@ -677,6 +677,8 @@ def _log_from_quat(q: Array) -> Array:
 
 
 _to_quat_jit = jax.jit(_to_quat)
+
+
 def _log(R: Array) -> Array:
     return _log_from_quat(_to_quat(R))
 

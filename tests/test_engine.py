@@ -238,6 +238,63 @@ def test_batched_programs_are_traced_once(monkeypatch):
     assert _rel(grads, loop) < 1e-12
 
 
+def _chain(a0):
+    """A loop whose carry becomes batched step by step: ``e`` one step after ``a``, ``b``
+    two; ``d`` and the counter never."""
+
+    def step(P, c):
+        a, e, b, d, k = c
+        return (0.5 * a + P, e + jnp.sin(a), b + e**2, 2.0 * d - 1.0, k + 1)
+
+    observe = lambda P, c: c[2] + c[3]  # noqa: E731
+    c0 = (a0, jnp.zeros(()), jnp.zeros(()), jnp.asarray(0.25), jnp.asarray(0, jnp.int32))
+    return _engine.run(step, observe, jnp.asarray(0.3), c0, 6, 2)
+
+
+def _first_scan(jaxpr):
+    """The first `scan` equation of ``jaxpr``, searched depth first through sub-jaxprs."""
+    from jax.extend.core import subjaxprs
+
+    for e in jaxpr.eqns:
+        if e.primitive.name == "scan":
+            return e
+    for sub in subjaxprs(jaxpr):
+        found = _first_scan(sub)
+        if found is not None:
+            return found
+    return None
+
+
+def test_batched_array_loops_are_batched_once(monkeypatch):
+    """Below the scalarized program's batch size, ``vmap`` runs the array program with its
+    loops' carries settled up front (`_engine._Traced`): JAX batches each loop body once
+    (its own fixed point would batch the outer body three times here, and the inner one
+    once per pass), what never depends on the batch stays unbatched, and the values are
+    those of single runs."""
+    from jax._src.interpreters import batching
+
+    calls = []
+    original = batching.batch_jaxpr
+
+    def spy(closed, *args, **kwargs):
+        calls.append(len(closed.jaxpr.eqns))
+        return original(closed, *args, **kwargs)
+
+    monkeypatch.setattr(batching, "batch_jaxpr", spy)
+    a0 = jnp.array([0.1, -0.7, 1.3])
+    jaxpr = jax.make_jaxpr(jax.vmap(_chain))(a0)
+    assert len(calls) == 2, calls  # the save loop's body, then the inner loop's
+    scan = _first_scan(jaxpr.jaxpr)  # the save loop (inside the engine's custom rules)
+    nc, ncar = scan.params["num_consts"], scan.params["num_carry"]
+    shapes = [v.aval.shape for v in scan.invars[nc : nc + ncar]]
+    assert shapes == [(3,), (3,), (3,), (), ()], shapes  # d and the counter shared
+    got = jax.jit(jax.vmap(_chain))(a0)
+    for i, a in enumerate(a0):
+        one = _chain(a)
+        for g, r in zip(jax.tree.leaves(got), jax.tree.leaves(one), strict=True):
+            np.testing.assert_allclose(np.asarray(g)[i], r, rtol=1e-14)
+
+
 def test_checkpointing_keeps_gradients_and_chunks():
     """Any checkpoint length gives the same gradient (the segments are padded)."""
     ref = jax.grad(_toy)(1.7, "autodiff", 21)
