@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
 from jax.extend import core as jex_core
+from jax.extend.core.primitives import cond_p
 
 __all__ = [
     "scalarize",
@@ -468,9 +469,25 @@ def fusion_cut(values: list, index) -> list:
     """
     if not values:
         return values
-    ident = lambda v: v  # noqa: E731
-    never = lambda v: [jnp.zeros_like(x) for x in v]  # noqa: E731
-    return jax.lax.switch(index, (ident, ident, never), list(values))
+    values = [jnp.asarray(v) for v in values]
+    ident, never = _cut_branches(tuple(jax.typeof(v) for v in values))
+    return cond_p.bind(index, *values, branches=(ident, ident, never))
+
+
+@functools.lru_cache(maxsize=1024)
+def _cut_branches(avals: tuple) -> tuple:
+    """The branches of a `fusion_cut` at these operand types, traced once per process.
+
+    What ``lax.switch(index, (ident, ident, never), values)`` would bind, without
+    tracing three branches for every cut: a scalarized step has a hundred cuts,
+    most of them at a few operand types, and JAX batches a branch it has batched
+    before from its cache (the same jaxpr), so a program's cuts are traced and
+    batched a few times instead of hundreds.
+    """
+    ident = jax.make_jaxpr(lambda *v: list(v))(*avals)
+    never = jax.make_jaxpr(lambda *v: [jnp.zeros_like(x) for x in v])(*avals)
+    assert not ident.consts and not never.consts
+    return ident, never
 
 
 @custom_vmap
