@@ -241,3 +241,27 @@ def test_settle_batched_reaches_the_scan_fixed_point_and_keeps_shared_values():
     (scan,) = [e for e in jaxpr.eqns if e.primitive.name == "scan"]
     carry = [v.aval.shape for v in scan.outvars]
     assert carry == [(6,), (6,), (6,), ()], carry  # batched once, d still shared
+
+
+def test_fusion_cut_branches_are_traced_once_per_operand_types():
+    """Cuts at the same operand types share their branch jaxprs (`_cut_branches`); the
+    values pass through for index 0 and 1, and the never-taken branch gives zeros."""
+    from so3jax import _scalarize as sc
+
+    sc._cut_branches.cache_clear()
+
+    def two_cuts(x, index):
+        a = sc.fusion_cut([x, 2.0 * x, x > 0.0], index)
+        b = sc.fusion_cut([a[0] + 1.0, a[1], a[2] & (x < 1.0)], index)
+        return b
+
+    f = jax.jit(two_cuts)
+    x = jnp.asarray(0.5, jnp.float64)  # strongly typed: both cuts at the same types
+    for i in (0, 1):
+        out = f(x, jnp.asarray(i, jnp.int32))
+        assert [float(v) for v in out] == [1.5, 1.0, 1.0]
+    info = sc._cut_branches.cache_info()
+    assert (info.misses, info.hits) == (1, 1), info
+    zeros = f(x, jnp.asarray(2, jnp.int32))
+    assert [float(v) for v in zeros] == [0.0, 0.0, 0.0]
+    assert zeros[2].dtype == jnp.bool_
