@@ -414,9 +414,9 @@ class _Traced:
 
     Under ``vmap``, a `lax.scan` whose carry starts partly unbatched finds which
     components become batched by batching its body again until nothing changes:
-    two passes over the forward loop's body for the seed (the step counter and
-    the status start unbatched), two over the Jacobian program's (its tangents
-    start as unbatched zeros), each nested scan once more per pass. `vmap` walks
+    two passes over the forward loop's body for the seed (the run's status
+    starts unbatched), two over the Jacobian program's (its tangents start as
+    unbatched zeros), each nested scan once more per pass. `vmap` walks
     the jaxpr's top-level equations and, before each loop, batches the carry
     components that its body would batch (`_scan_carry_flags`: the same fixed
     point, on flags), so that JAX batches each body once. What stays unbatched

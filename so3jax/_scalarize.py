@@ -479,10 +479,11 @@ def _cut_branches(avals: tuple) -> tuple:
     """The branches of a `fusion_cut` at these operand types, traced once per process.
 
     What ``lax.switch(index, (ident, ident, never), values)`` would bind, without
-    tracing three branches for every cut: a scalarized step has a hundred cuts,
-    most of them at a few operand types, and JAX batches a branch it has batched
-    before from its cache (the same jaxpr), so a program's cuts are traced and
-    batched a few times instead of hundreds.
+    tracing three branches for every cut: tracing the seed's 4096-run forward
+    program makes 49 cuts at 7 operand types, its B = 256 gradient 119 at 14;
+    and JAX batches a branch it has batched before from its cache (the same
+    jaxpr), so the cuts' branches are traced and batched that many times, not
+    three per cut.
     """
     ident = jax.make_jaxpr(lambda *v: list(v))(*avals)
     never = jax.make_jaxpr(lambda *v: [jnp.zeros_like(x) for x in v])(*avals)
