@@ -191,14 +191,6 @@ _SHAPE_OPS = {
 }
 
 
-#: Primitives that call a jaxpr once with their operands (walked inside). Loops and
-#: conditionals are not among them: a loop's body walked once would miss what a
-#: later iteration makes depend, so they are taken whole.
-_CALLS = frozenset(
-    "pjit jit closed_call core_call custom_jvp_call custom_vjp_call remat checkpoint".split()
-)
-
-
 def _dot_mask(lhs, rhs, dimension_numbers) -> np.ndarray:
     """The mask of ``dot_general(lhs, rhs)``: an entry depends on what it sums."""
     (cl, cr), (bl, br) = dimension_numbers
@@ -246,7 +238,9 @@ def _mask_eval(jaxpr, ins: list) -> list:
             elif name in sc._ELEMENTWISE:
                 ys = xs[1:] if name == "select_n" else xs
                 outs = [np.logical_or.reduce([np.broadcast_to(y, shapes[0]) for y in ys])]
-            elif name in _CALLS and isinstance(inner, jex_core.Jaxpr):
+            elif name in sc.CALL_PRIMITIVES and isinstance(inner, jex_core.Jaxpr):
+                # (Loops and conditionals are taken whole below: a loop's body walked
+                # once would miss what a later iteration makes depend.)
                 outs = _mask_eval(inner, xs)
             else:
                 raise KeyError(name)
@@ -418,10 +412,10 @@ class _Traced:
     starts unbatched), two over the Jacobian program's (its tangents start as
     unbatched zeros), each nested scan once more per pass. `vmap` walks
     the jaxpr's top-level equations and, before each loop, batches the carry
-    components that its body would batch (`_scan_carry_flags`: the same fixed
-    point, on flags), so that JAX batches each body once. What stays unbatched
+    components that its body would batch (`sc.carry_fixed_point`: the same
+    fixed point, on flags), so that JAX batches each body once. What stays unbatched
     (the reference attitude a batch shares) stays so. The scalarized programs do
-    the same on their flat components (`sc.settle_batched`).
+    the same on their flat components (`sc.settle_batched`, the same fixed point).
     """
 
     def __init__(self, closed, out_tree):
@@ -459,7 +453,7 @@ class _Traced:
             bs = [is_batched(v) for v in e.invars]
             if flags is not None and e.primitive.name == "scan":
                 nc, ncar = e.params["num_consts"], e.params["num_carry"]
-                settled = _scan_carry_flags(e.params["jaxpr"].jaxpr, bs, nc, ncar)
+                settled = sc.carry_fixed_point(e.params["jaxpr"].jaxpr, bs, nc, ncar)
                 for i, (now, then) in enumerate(zip(bs[nc : nc + ncar], settled, strict=True)):
                     if then and not now:
                         ins[nc + i], bs[nc + i] = _batch_by(ins[nc + i], one), True
@@ -467,7 +461,7 @@ class _Traced:
                 outs = e.primitive.bind(*ins, **e.primitive.get_bind_params(e.params))
             outs = outs if e.primitive.multiple_results else [outs]
             env.update(zip(e.outvars, outs, strict=True))
-            batched.update(zip(e.outvars, _eqn_batched(e, bs), strict=True))
+            batched.update(zip(e.outvars, sc.eqn_batched(e, bs), strict=True))
         return jax.tree.unflatten(self.out_tree, [read(v) for v in jaxpr.outvars])
 
 
@@ -479,52 +473,6 @@ def _batch_by(x, one):
     if jnp.issubdtype(x.dtype, jnp.number):
         return x + one.astype(x.dtype)
     return x  # (a key, say: JAX's own fixed point batches it if it must)
-
-
-def _flags_through(jaxpr, flags: list) -> list:
-    """Which outputs of ``jaxpr`` a ``vmap`` batches, given which inputs are batched."""
-    env = dict(zip(jaxpr.invars, flags, strict=True))
-
-    def read(v):
-        return isinstance(v, jex_core.Var) and env.get(v, False)
-
-    for e in jaxpr.eqns:
-        env.update(zip(e.outvars, _eqn_batched(e, [read(v) for v in e.invars]), strict=True))
-    return [read(v) for v in jaxpr.outvars]
-
-
-def _scan_carry_flags(body, flags: list, num_consts: int, num_carry: int) -> list:
-    """The batched flags of a scan's carry at the fixed point of its ``body`` (a jaxpr)."""
-    carry = list(flags[num_consts : num_consts + num_carry])
-    while True:
-        ins = flags[:num_consts] + carry + flags[num_consts + num_carry :]
-        out = _flags_through(body, ins)[:num_carry]
-        new = [a or b for a, b in zip(carry, out, strict=True)]
-        if new == carry:
-            return carry
-        carry = new
-
-
-def _eqn_batched(e, flags: list) -> list:
-    """Which outputs of equation ``e`` a ``vmap`` batches (never fewer than JAX does)."""
-    n = len(e.outvars)
-    if not any(flags):
-        return [False] * n
-    name, prm = e.primitive.name, e.params
-    if name == "scan":
-        nc, ncar = prm["num_consts"], prm["num_carry"]
-        body = prm["jaxpr"].jaxpr
-        carry = _scan_carry_flags(body, flags, nc, ncar)
-        ys = _flags_through(body, flags[:nc] + carry + flags[nc + ncar :])[ncar:]
-        return carry + ys
-    if name == "cond" and not flags[0]:
-        branches = [_flags_through(b.jaxpr, flags[1:]) for b in prm["branches"]]
-        return [any(f) for f in zip(*branches, strict=True)]
-    inner = prm.get("jaxpr", prm.get("call_jaxpr"))
-    inner = getattr(inner, "jaxpr", inner)
-    if name in _CALLS and isinstance(inner, jex_core.Jaxpr) and len(inner.invars) == len(flags):
-        return _flags_through(inner, flags)
-    return [True] * n
 
 
 def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str) -> Callable:

@@ -660,21 +660,70 @@ def batched_components(run_flat, flat: list, batched: list, dtypes=None) -> list
     if dtypes is not None:
         flat = [jax.ShapeDtypeStruct((), dt) for dt in dtypes]
     closed = closed_for(flat)
-    jaxpr = closed.jaxpr
     const_b = [_batched_const(c) for c in closed.consts]
-    flags = list(batched)
+    return carry_fixed_point(closed.jaxpr, list(batched), 0, len(batched), const_b)
+
+
+#: Primitives that call a jaxpr once with their operands, walked inside by the flag
+#: walks here and in `_engine` (loops and conditionals have rules of their own).
+CALL_PRIMITIVES = frozenset(
+    "pjit jit closed_call core_call custom_jvp_call custom_vjp_call remat checkpoint".split()
+)
+
+
+def batched_outputs(jaxpr, flags: list, const_flags=()) -> list:
+    """Which outputs of ``jaxpr`` a ``vmap`` batches, given which inputs (and constvars,
+    ``const_flags``; unbatched if not given) are batched. Never fewer than JAX batches."""
+    consts = const_flags or [False] * len(jaxpr.constvars)
+    env = dict(zip(jaxpr.constvars, consts, strict=True))
+    env.update(zip(jaxpr.invars, flags, strict=True))
+
+    def read(v):
+        return isinstance(v, jex_core.Var) and env.get(v, False)
+
+    for e in jaxpr.eqns:
+        env.update(zip(e.outvars, eqn_batched(e, [read(v) for v in e.invars]), strict=True))
+    return [read(v) for v in jaxpr.outvars]
+
+
+def carry_fixed_point(body, flags: list, num_consts: int, num_carry: int, const_flags=()):
+    """The batched flags of a loop's carry at the fixed point of its ``body`` (a jaxpr
+    taking consts, carry and per-iteration inputs, returning the carry first), as
+    JAX's ``scan`` finds it by batching the body until nothing changes."""
+    carry = list(flags[num_consts : num_consts + num_carry])
     while True:
-        env = dict(zip(jaxpr.constvars, const_b, strict=True))
-        env.update(zip(jaxpr.invars, flags, strict=True))
-        for e in jaxpr.eqns:
-            b = any(env[v] for v in e.invars if isinstance(v, jex_core.Var))
-            for v in e.outvars:
-                env[v] = b
-        out = [isinstance(v, jex_core.Var) and env[v] for v in jaxpr.outvars]
-        new = [a or b for a, b in zip(flags, out, strict=True)]
-        if new == flags:
-            return flags
-        flags = new
+        ins = flags[:num_consts] + carry + flags[num_consts + num_carry :]
+        out = batched_outputs(body, ins, const_flags)[:num_carry]
+        new = [a or b for a, b in zip(carry, out, strict=True)]
+        if new == carry:
+            return carry
+        carry = new
+
+
+def eqn_batched(e, flags: list) -> list:
+    """Which outputs of equation ``e`` a ``vmap`` batches (never fewer than JAX does)."""
+    n = len(e.outvars)
+    if not any(flags):
+        return [False] * n
+    name, prm = e.primitive.name, e.params
+    if name == "scan":
+        nc, ncar = prm["num_consts"], prm["num_carry"]
+        body = prm["jaxpr"].jaxpr
+        carry = carry_fixed_point(body, flags, nc, ncar)
+        ys = batched_outputs(body, flags[:nc] + carry + flags[nc + ncar :])[ncar:]
+        return carry + ys
+    if name == "cond" and not flags[0]:
+        branches = [batched_outputs(b.jaxpr, flags[1:]) for b in prm["branches"]]
+        return [any(f) for f in zip(*branches, strict=True)]
+    inner = prm.get("jaxpr", prm.get("call_jaxpr"))
+    inner = getattr(inner, "jaxpr", inner)
+    if (
+        name in CALL_PRIMITIVES
+        and isinstance(inner, jex_core.Jaxpr)
+        and len(inner.invars) == len(flags)
+    ):
+        return batched_outputs(inner, flags)
+    return [True] * n
 
 
 def settle_batched(run_flat, flat: list, batched: list, one, dtypes=None) -> list:
