@@ -91,6 +91,21 @@ def programs(quick: bool):
     return out
 
 
+def option_supported() -> bool:
+    """Whether this jaxlib's XLA CPU compiler still takes the emitter option.
+
+    (JAX 0.11's XLA has no ``xla_cpu_use_fusion_emitters``: it rejects the option.)
+    """
+    lowered = jax.jit(lambda x: x + 1).lower(jnp.zeros(2))
+    try:
+        lowered.compile(compiler_options=SETTINGS["older IR emitters"])
+    except jax.errors.JaxRuntimeError as e:
+        if "xla_cpu_use_fusion_emitters" in str(e):
+            return False
+        raise
+    return True
+
+
 def _rel_diff(a, b) -> float:
     a, b = jax.tree.leaves(a), jax.tree.leaves(b)
     worst = 0.0
@@ -107,6 +122,11 @@ def main():
 
     args = C.parse_args(__doc__.splitlines()[0], extra)
     rounds = args.rounds or (1 if args.quick else 2)
+    if not option_supported():
+        raise SystemExit(
+            f"emitters.py: this jaxlib ({jax.__version__}) has no XLA CPU option "
+            "'xla_cpu_use_fusion_emitters' (removed in newer XLA): nothing to compare."
+        )
     rows = []
     for name, fn, arg in C.progress(programs(args.quick), "programs"):
         best = {s: {"compile_s": math.inf, "run_s": math.inf} for s in SETTINGS}

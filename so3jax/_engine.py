@@ -451,8 +451,9 @@ class _Traced:
         for e in jaxpr.eqns:
             ins = [read(v) for v in e.invars]
             bs = [is_batched(v) for v in e.invars]
-            if flags is not None and e.primitive.name == "scan":
-                nc, ncar = e.params["num_consts"], e.params["num_carry"]
+            split = sc.scan_split(e) if flags is not None and e.primitive.name == "scan" else None
+            if split is not None:
+                nc, ncar = split
                 settled = sc.carry_fixed_point(e.params["jaxpr"].jaxpr, bs, nc, ncar)
                 for i, (now, then) in enumerate(zip(bs[nc : nc + ncar], settled, strict=True)):
                     if then and not now:

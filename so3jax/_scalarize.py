@@ -686,6 +686,33 @@ def batched_outputs(jaxpr, flags: list, const_flags=()) -> list:
     return [read(v) for v in jaxpr.outvars]
 
 
+def scan_split(e) -> tuple[int, int] | None:
+    """How many of scan equation ``e``'s operands are constants and how many the carry.
+
+    JAX up to 0.10 names both counts in the equation's parameters; 0.11 describes the
+    operands as three groups instead (``ft_in``: constants, carry, per-iteration
+    inputs). ``None`` where neither reading fits the body (a later JAX): callers then
+    leave the batching of that loop to JAX.
+    """
+    prm = e.params
+    body = prm["jaxpr"].jaxpr
+    if "num_consts" in prm:
+        return prm["num_consts"], prm["num_carry"]
+    try:
+        consts, carry, _ = prm["ft_in"].unpack()
+        nc, ncar = len(consts), len(carry)
+    except (KeyError, AttributeError, TypeError, ValueError):
+        return None
+
+    def types(vs):
+        return [(v.aval.shape, v.aval.dtype) for v in vs]
+
+    fits = len(body.invars) == len(e.invars) and len(body.outvars) == len(e.outvars)
+    if not fits or types(body.invars[nc : nc + ncar]) != types(body.outvars[:ncar]):
+        return None
+    return nc, ncar
+
+
 def carry_fixed_point(body, flags: list, num_consts: int, num_carry: int, const_flags=()):
     """The batched flags of a loop's carry at the fixed point of its ``body`` (a jaxpr
     taking consts, carry and per-iteration inputs, returning the carry first), as
@@ -706,8 +733,8 @@ def eqn_batched(e, flags: list) -> list:
     if not any(flags):
         return [False] * n
     name, prm = e.primitive.name, e.params
-    if name == "scan":
-        nc, ncar = prm["num_consts"], prm["num_carry"]
+    if name == "scan" and (split := scan_split(e)) is not None:
+        nc, ncar = split
         body = prm["jaxpr"].jaxpr
         carry = carry_fixed_point(body, flags, nc, ncar)
         ys = batched_outputs(body, flags[:nc] + carry + flags[nc + ncar :])[ncar:]

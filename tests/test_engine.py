@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import so3jax as s
-from so3jax import _engine
+from so3jax import _engine, _scalarize as sc
 from so3jax._simulate import _simulate
 from so3jax._tune import _check_weights, _rollout, with_gains, with_initial_state, with_start
 
@@ -285,13 +285,48 @@ def test_batched_array_loops_are_batched_once(monkeypatch):
     jaxpr = jax.make_jaxpr(jax.vmap(_chain))(a0)
     assert len(calls) == 2, calls  # the save loop's body, then the inner loop's
     scan = _first_scan(jaxpr.jaxpr)  # the save loop (inside the engine's custom rules)
-    nc, ncar = scan.params["num_consts"], scan.params["num_carry"]
+    nc, ncar = sc.scan_split(scan)
     shapes = [v.aval.shape for v in scan.invars[nc : nc + ncar]]
     assert shapes == [(3,), (3,), (3,), (), ()], shapes  # d and the counter shared
     got = jax.jit(jax.vmap(_chain))(a0)
     for i, a in enumerate(a0):
         one = _chain(a)
         for g, r in zip(jax.tree.leaves(got), jax.tree.leaves(one), strict=True):
+            np.testing.assert_allclose(np.asarray(g)[i], r, rtol=1e-14)
+
+
+def test_scan_split_reads_loop_operands_and_unknown_loops_fall_back(monkeypatch):
+    """`sc.scan_split` finds a loop's constants and carry (JAX 0.10 names the counts;
+    0.11 groups the operands instead, checked on a GPU machine's JAX 0.11.2 in S36).
+    Where it cannot read a loop (``None``, what a later JAX might give), ``vmap`` leaves
+    that loop's batching to JAX: more batching passes, the same values."""
+    from jax._src.interpreters import batching
+
+    w = jnp.arange(3.0)
+
+    def body(c, x):
+        return (c[0] + x * w, c[1] * 2.0), c[1] * x
+
+    closed = jax.make_jaxpr(lambda a, xs: jax.lax.scan(body, (a * w, a), xs))(1.0, jnp.ones(4))
+    (scan,) = [e for e in closed.jaxpr.eqns if e.primitive.name == "scan"]
+    nc, ncar = sc.scan_split(scan)
+    assert ncar == 2 and len(scan.invars) - nc - ncar == 1  # two carried, xs scanned
+    assert [v.aval.shape for v in scan.invars[nc : nc + ncar]] == [(3,), ()]
+
+    calls = []
+    original = batching.batch_jaxpr
+
+    def spy(closed, *args, **kwargs):
+        calls.append(len(closed.jaxpr.eqns))
+        return original(closed, *args, **kwargs)
+
+    monkeypatch.setattr(batching, "batch_jaxpr", spy)
+    monkeypatch.setattr(sc, "scan_split", lambda e: None)
+    a0 = jnp.array([0.1, -0.7, 1.3])
+    got = jax.vmap(_chain)(a0)
+    assert len(calls) > 2, calls  # JAX's own fixed point: bodies batched more than once
+    for i, a in enumerate(a0):
+        for g, r in zip(jax.tree.leaves(got), jax.tree.leaves(_chain(a)), strict=True):
             np.testing.assert_allclose(np.asarray(g)[i], r, rtol=1e-14)
 
 

@@ -11,7 +11,7 @@ from exact_rigid_body import ExactFreeBody, ambient_reference
 from scipy.spatial.transform import Rotation
 
 import so3jax
-from so3jax import LieState, RigidBody, _engine
+from so3jax import LieState, RigidBody, _engine, _scalarize as sc
 from so3jax.scenes import MechanicalScene
 
 MOMENTS = np.array([1.0, 1.5, 2.2])
@@ -427,7 +427,7 @@ def _scan_carries(jaxpr):
     out = []
     for eqn in jaxpr.eqns:
         if eqn.primitive.name == "scan":
-            nc, ncar = eqn.params["num_consts"], eqn.params["num_carry"]
+            nc, ncar = sc.scan_split(eqn)
             out.append([v.aval for v in eqn.invars[nc : nc + ncar]])
         for p in eqn.params.values():
             for sub in p if isinstance(p, (tuple, list)) else (p,):
