@@ -7,12 +7,15 @@ warm-up sweep with the same chunk shape, then the whole sweep once: it compiles 
 re-runs of runs past the step limit); the figure is the second sweep's runs per second and
 body-steps per second, with float32 as a ratio to float64 in the same run.
 
-Writes ``results/sweep[-quick].json`` and ``.png`` (``--array``, the array program:
-``sweep-array[-quick]``).
+``sweep`` picks its program per platform (scalarized on a CPU, the array program on a
+GPU: `so3jax._engine.SWEEP_SCALARIZE`); ``--array`` and ``--scalarized`` force one.
+Writes ``results/sweep[-quick].json`` and ``.png`` (forced: ``sweep-array[-quick]``,
+``sweep-scalarized[-quick]``).
 
     python benchmarks/sweep.py            # full
     python benchmarks/sweep.py --quick    # smoke run: 8 x 8 grid x 4 attitudes, LieEuler
     python benchmarks/sweep.py --array    # sweep(..., scalarize=False) beside the default
+    python benchmarks/sweep.py --scalarized  # sweep(..., scalarize=True)
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ def run(
     chunk: int,
     method: str,
     quick: bool,
-    scalarize: bool = True,
+    scalarize: bool | None = None,
 ) -> dict:
     scene = so3.scenes.seed(dtype=dtype)
     k_R = np.geomspace(1.0, 100.0, n_grid)
@@ -86,7 +89,8 @@ def run(
         "n_runs": n_runs,
         "n_steps": n_steps,
         "chunk_size": chunk,
-        "scalarize": scalarize,
+        # The program that ran (sweep's own choice where none was forced).
+        "scalarize": _engine.sweep_scalarize(jax.devices()) if scalarize is None else scalarize,
         "seconds": seconds,
         "first_chunk_with_compile_s": compile_s,
         "first_sweep_s": first_s,
@@ -122,13 +126,22 @@ def main(argv=None):
         action="store_true",
         help="sweep(..., scalarize=False): the array program (writes sweep-array*.json)",
     )
+    p.add_argument(
+        "--scalarized",
+        action="store_true",
+        help="sweep(..., scalarize=True): the scalarized program (sweep-scalarized*.json)",
+    )
     args = p.parse_args(argv)
+    if args.array and args.scalarized:
+        p.error("--array and --scalarized are exclusive")
+    forced = {"array": False, "scalarized": True}
+    program = next((k for k in forced if getattr(args, k)), None)
     # --quick is a smoke run: small sizes and the one-stage method (compiling
     # the scalarized RKMK4 chunk alone takes several seconds).
     n_grid, n_att, n_steps = (8, 4, 200) if args.quick else (64, 16, 1000)
     method = args.method or ("LieEuler" if args.quick else "RKMK4")
     rows = [
-        run(dt, n_grid, n_att, n_steps, args.chunk_size, method, args.quick, not args.array)
+        run(dt, n_grid, n_att, n_steps, args.chunk_size, method, args.quick, forced.get(program))
         for dt in ("float64", "float32")
     ]
     for r in rows:
@@ -142,7 +155,7 @@ def main(argv=None):
     print(f"float32 / float64 throughput: {ratio:.2f}x")
     args.out = Path(args.out)
     args.out.mkdir(parents=True, exist_ok=True)
-    json_path, png_path = C.output_paths(args, "sweep-array" if args.array else "sweep")
+    json_path, png_path = C.output_paths(args, f"sweep-{program}" if program else "sweep")
     C.write_json(
         json_path,
         {

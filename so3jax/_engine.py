@@ -349,6 +349,23 @@ GPU_LAYOUT = {"run": (4096, None)}
 SWEEP_CHUNK = {"cpu": 1024, "gpu": 65536}
 
 
+#: Whether `so3jax.sweep` steps its chunks as the scalarized program when the caller
+#: leaves ``scalarize`` to it, per platform. CPU: yes (several times faster in batches).
+#: GPU: no. Seed sweep of 65,536 runs x 1000 steps in one chunk on S36's H100
+#: (`benchmarks/sweep.py` with and without ``--array``): the compiled sweep ran 0.30 /
+#: 0.28 s scalarized against 0.44 / 0.30 s (float64 / float32), but a first sweep,
+#: compile of the chunk and of its re-runs included, took 23.4 / 19.4 s scalarized against
+#: 11.5 / 6.0 s. The array program pays for itself unless a process sweeps the same
+#: program some 85 times (float64; 790 in float32).
+SWEEP_SCALARIZE = {"cpu": True, "gpu": False}
+
+
+def sweep_scalarize(devices) -> bool:
+    """Whether `so3jax.sweep` over ``devices`` runs the scalarized program by default
+    (`SWEEP_SCALARIZE`; a TPU counts as a GPU)."""
+    return SWEEP_SCALARIZE["cpu" if list(devices)[0].platform == "cpu" else "gpu"]
+
+
 def sweep_chunk(devices, n_saved: int, itemsize: int) -> int:
     """Default runs per chunk of `so3jax.sweep` over ``devices``.
 

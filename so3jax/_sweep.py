@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ._engine import sweep_chunk
+from ._engine import sweep_chunk, sweep_scalarize
 from ._integrators import RKMK4, AbstractLieSolver
 from ._quadrotor import Quadrotor, _restart, position_metrics
 from ._simulate import simulate, simulate_from
@@ -712,7 +712,7 @@ def sweep(
     devices=None,
     progress: bool = True,
     on_chunk: Callable[[int, int], None] | None = None,
-    scalarize: bool = True,
+    scalarize: bool | None = None,
 ) -> SweepResult:
     """Monte Carlo sweep of the geometric controller: gain pairs x random initial attitudes.
 
@@ -794,8 +794,12 @@ def sweep(
     - `on_chunk`: called as ``on_chunk(index, n_chunks)`` after each chunk is computed
       (and saved).
     - `scalarize`: step each chunk as a program over scalar components
-      (``simulate(..., scalarize=True)``): the same numbers to round-off, several
-      times faster for batches on CPU, a few seconds more to compile.
+      (``simulate(..., scalarize=True)``) or as the array program (``False``): the
+      same numbers to round-off. ``None`` (default) picks per platform: scalarized on a
+      CPU (several times faster in batches, a few seconds more to compile), the array
+      program on a GPU (both latency bound there; the array program compiles several
+      times faster, so a sweep finishes sooner unless the same sweep is repeated
+      dozens of times in one process; `so3jax._engine.SWEEP_SCALARIZE`).
 
     **Returns:** a `SweepResult`.
     """
@@ -887,6 +891,8 @@ def sweep(
     stable_run = st.reshape(-1)
     n_runs = G * n_att
     n_dev = len(devices)
+    if scalarize is None:
+        scalarize = sweep_scalarize(devices)
     if chunk_size is None:  # the fewest chunks of equal size, not full ones and a padded last
         n_saved, itemsize = n_steps // save_every + 1, jnp.dtype(dtype).itemsize
         # Every process must cut the same chunks: process 0's figure (from the memory of

@@ -471,6 +471,32 @@ def test_gpu_layout_table(monkeypatch):
     assert _engine.batched_layout("run") == _engine.BATCHED_LAYOUT["run"]
 
 
+def test_sweep_program_default_per_platform(monkeypatch):
+    """`sweep` leaves its program to the engine unless told: scalarized on a CPU, the
+    array program on a GPU (`_engine.SWEEP_SCALARIZE`); a forced choice is kept."""
+    from so3jax import _sweep
+
+    class FakeGPU:
+        platform = "gpu"
+
+    assert _engine.sweep_scalarize(jax.devices("cpu")) is True
+    assert _engine.sweep_scalarize([FakeGPU()]) is False
+    seen, run_chunk = [], _sweep._run_chunk
+
+    def recorded(*args):
+        seen[-1].add(args[-1])  # the chunk's scalarize flag
+        return run_chunk(*args)
+
+    monkeypatch.setattr(_sweep, "_run_chunk", recorded)
+    kw = dict(n_attitudes=1, dt=1e-3, n_steps=20, method=s.LieEuler(), progress=False)
+    # (the platform's choice, the caller's): False as on a GPU, True as on a CPU
+    for choice, forced in ((False, None), (True, None), (False, True)):
+        monkeypatch.setattr(_sweep, "sweep_scalarize", lambda devices, c=choice: c)
+        seen.append(set())
+        s.sweep(s.scenes.seed(), [2.0], [1.0], scalarize=forced, **kw)
+    assert seen == [{False}, {True}, {True}]
+
+
 def test_sweep_chunk_default_per_platform():
     """`sweep`'s default chunk: 1024 runs per CPU device; on a GPU 65536 per device, cut
     to half the smallest device's memory, never below 1024."""
