@@ -8,8 +8,13 @@ side by side in one process:
 
 - throughput: ``vmap(simulate)`` over random starts of the seed scenario, 100
   steps of 0.01 s, body-steps per second, per method, batch and dtype;
-- derivatives: the forward pass and ``jax.grad`` of the mean tracking cost
-  (`expected_cost`, RKMK4, dt = 1e-2, 1000 steps) with respect to (k_R, k_Omega).
+- derivatives: the forward pass, ``jax.grad`` and ``jax.jacfwd`` (what `tune` takes
+  by default for a few gains, ``gradient="auto"``) of the mean tracking cost (`expected_cost`,
+  RKMK4, dt = 1e-2, 1000 steps) with respect to (k_R, k_Omega). On a GPU the
+  derivative programs keep the CPU's table (scalarized from 32 runs); S32's H200 ran
+  ``grad`` at 256 runs in 77.7 ms after 10.6 s of compile, 95.3 ms after 5.2 s with the
+  array program: a `tune` of 100 iterations (its default) would finish first on the
+  array program if ``jacfwd`` behaves alike. These rows (``--check``) decide it.
 
 Writes ``results/layouts[-check][-<backend>][-quick].json`` (a ``.partial.json`` as it goes).
 
@@ -83,7 +88,12 @@ def derivative_rows(B, lay, repeats, n=1000):
         return s.expected_cost(scene, k[0], k[1], R0, W0, s.RKMK4(), 1e-2, n, checkpoint_every=ck)
 
     rows = []
-    for what, fn in (("forward pass", lambda k: cost(k, None)), ("grad", jax.grad(cost))):
+    forward = lambda k: cost(k, None)  # noqa: E731
+    for what, fn in (
+        ("forward pass", forward),
+        ("grad", jax.grad(cost)),
+        ("jacfwd", jax.jacfwd(forward)),
+    ):
         with layout(lay):
             r = C.compile_and_time(fn, k, repeats=repeats)
         rows.append(

@@ -312,6 +312,25 @@ def test_scan_split_reads_loop_operands_and_unknown_loops_fall_back(monkeypatch)
     nc, ncar = sc.scan_split(scan)
     assert ncar == 2 and len(scan.invars) - nc - ncar == 1  # two carried, xs scanned
     assert [v.aval.shape for v in scan.invars[nc : nc + ncar]] == [(3,), ()]
+    # JAX 0.11's reading: no counts, the operands in three groups (`ft_in`, whose
+    # `unpack` gives them), as the same loop is written there.
+    params = {k: v for k, v in scan.params.items() if k not in ("num_consts", "num_carry")}
+
+    class FlatTreeLike:
+        def __init__(self, *sizes):
+            self.groups = tuple(range(n) for n in sizes)
+
+        def unpack(self):
+            return self.groups
+
+    n_xs = len(scan.invars) - nc - ncar
+    for ft_in, want in (
+        (FlatTreeLike(nc, ncar, n_xs), (nc, ncar)),
+        (FlatTreeLike(nc + 1, ncar - 1, n_xs), None),  # groups that do not fit the body
+        (None, None),  # no reading at all
+    ):
+        as_011 = scan.replace(params={**params, "ft_in": ft_in})
+        assert sc.scan_split(as_011) == want
 
     calls = []
     original = batching.batch_jaxpr
