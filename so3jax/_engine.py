@@ -1009,6 +1009,7 @@ def _checkpointed_jvp(loop: _Loop, primals, tangents):
     p_leaves, treedef = jax.tree.flatten(primals)
     t_leaves = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
     nz = [not isinstance(t, SymbolicZero) for t in t_leaves]
+    t_leaves = _settle_carry_tangents(loop, primals, p_leaves, t_leaves, nz)
 
     def g(*xs):
         return loop.fwd_checkpointed(*jax.tree.unflatten(treedef, _fill(nz, xs, p_leaves)))
@@ -1016,6 +1017,41 @@ def _checkpointed_jvp(loop: _Loop, primals, tangents):
     xs = [p for p, z in zip(p_leaves, nz, strict=True) if z]
     ts = [t for t, z in zip(t_leaves, nz, strict=True) if z]
     return jax.jvp(g, xs, ts)
+
+
+def _settle_carry_tangents(loop: _Loop, primals, p_leaves, t_leaves, nz) -> list:
+    """``t_leaves`` with a zero tangent, not a symbolic one, for each initial carry leaf
+    that a step gives a nonzero tangent (`_tangent_masks`); ``nz`` is updated to match.
+
+    JAX's ``jvp`` of a ``scan`` finds which carry tangents are nonzero by
+    differentiating the body until nothing changes, and under ``grad`` its partial
+    evaluator finds the unknown carry the same way; in the checkpointed program the
+    inner loop is differentiated again on every pass of the outer one. Starting those
+    leaves with a zero tangent settles both in one pass. The zero is computed from an
+    input tangent (`_zero_like_tangent`), so the partial evaluator sees it as unknown too.
+    """
+    P, c0 = primals
+    n_P = len(jax.tree.leaves(P))
+    floats = [_is_float(x) for x in p_leaves]
+    nz_P = [z for z, f in zip(nz[:n_P], floats[:n_P], strict=True) if f]
+    nz_c = [z for z, f in zip(nz[n_P:], floats[n_P:], strict=True) if f]
+    sources = [t for t, z, f in zip(t_leaves, nz, floats, strict=True) if z and f and t.size]
+    if not sources or all(nz_c):
+        return t_leaves
+    _, mc = _tangent_masks(loop.step, P, c0, nz_P, nz_c)
+    source = sources[0]
+    it = iter(mc)
+    out = list(t_leaves)
+    for i in range(n_P, len(p_leaves)):
+        if floats[i] and next(it) and not nz[i]:
+            out[i], nz[i] = _zero_like_tangent(p_leaves[i], source), True
+    return out
+
+
+def _zero_like_tangent(x, source):
+    """Zeros shaped like ``x``, computed from the tangent ``source`` (values unused)."""
+    s = jnp.ravel(source)[0]
+    return jnp.broadcast_to(jnp.where(False, s, 0).astype(jnp.result_type(x)), jnp.shape(x))
 
 
 #: Through at most this many differentiated scalars the run computes its Jacobian
