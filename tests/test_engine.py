@@ -294,22 +294,27 @@ def _first_scan(jaxpr):
     return None
 
 
-def test_batched_array_loops_are_batched_once(monkeypatch):
-    """Below the scalarized program's batch size, ``vmap`` runs the array program with its
-    loops' carries settled up front (`_engine._Traced`): JAX batches each loop body once
-    (its own fixed point would batch the outer body three times here, and the inner one
-    once per pass), what never depends on the batch stays unbatched, and the values are
-    those of single runs."""
+def _spy_batch_jaxpr(monkeypatch) -> list:
+    """The equation counts of the jaxprs JAX batches from now on (`batching.batch_jaxpr`)."""
     from jax._src.interpreters import batching
 
-    calls = []
-    original = batching.batch_jaxpr
+    calls, original = [], batching.batch_jaxpr
 
     def spy(closed, *args, **kwargs):
         calls.append(len(closed.jaxpr.eqns))
         return original(closed, *args, **kwargs)
 
     monkeypatch.setattr(batching, "batch_jaxpr", spy)
+    return calls
+
+
+def test_batched_array_loops_are_batched_once(monkeypatch):
+    """Below the scalarized program's batch size, ``vmap`` runs the array program with its
+    loops' carries settled up front (`_engine._Traced`): JAX batches each loop body once
+    (its own fixed point would batch the outer body three times here, and the inner one
+    once per pass), what never depends on the batch stays unbatched, and the values are
+    those of single runs."""
+    calls = _spy_batch_jaxpr(monkeypatch)
     a0 = jnp.array([0.1, -0.7, 1.3])
     jaxpr = jax.make_jaxpr(jax.vmap(_chain))(a0)
     assert len(calls) == 2, calls  # the save loop's body, then the inner loop's
@@ -329,7 +334,6 @@ def test_scan_split_reads_loop_operands_and_unknown_loops_fall_back(monkeypatch)
     0.11 groups the operands instead, checked on a GPU machine's JAX 0.11.2 in S36).
     Where it cannot read a loop (``None``, what a later JAX might give), ``vmap`` leaves
     that loop's batching to JAX: more batching passes, the same values."""
-    from jax._src.interpreters import batching
 
     w = jnp.arange(3.0)
 
@@ -361,14 +365,7 @@ def test_scan_split_reads_loop_operands_and_unknown_loops_fall_back(monkeypatch)
         as_011 = scan.replace(params={**params, "ft_in": ft_in})
         assert sc.scan_split(as_011) == want
 
-    calls = []
-    original = batching.batch_jaxpr
-
-    def spy(closed, *args, **kwargs):
-        calls.append(len(closed.jaxpr.eqns))
-        return original(closed, *args, **kwargs)
-
-    monkeypatch.setattr(batching, "batch_jaxpr", spy)
+    calls = _spy_batch_jaxpr(monkeypatch)
     monkeypatch.setattr(sc, "scan_split", lambda e: None)
     a0 = jnp.array([0.1, -0.7, 1.3])
     got = jax.vmap(_chain)(a0)
