@@ -1009,7 +1009,7 @@ def _checkpointed_jvp(loop: _Loop, primals, tangents):
     p_leaves, treedef = jax.tree.flatten(primals)
     t_leaves = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
     nz = [not isinstance(t, SymbolicZero) for t in t_leaves]
-    t_leaves = _settle_carry_tangents(loop, primals, p_leaves, t_leaves, nz)
+    t_leaves, nz = _settle_carry_tangents(loop, primals, p_leaves, t_leaves, nz)
 
     def g(*xs):
         return loop.fwd_checkpointed(*jax.tree.unflatten(treedef, _fill(nz, xs, p_leaves)))
@@ -1019,9 +1019,9 @@ def _checkpointed_jvp(loop: _Loop, primals, tangents):
     return jax.jvp(g, xs, ts)
 
 
-def _settle_carry_tangents(loop: _Loop, primals, p_leaves, t_leaves, nz) -> list:
-    """``t_leaves`` with a zero tangent, not a symbolic one, for each initial carry leaf
-    that a step gives a nonzero tangent (`_tangent_masks`); ``nz`` is updated to match.
+def _settle_carry_tangents(loop: _Loop, primals, p_leaves, t_leaves, nz) -> tuple[list, list]:
+    """``(t_leaves, nz)`` with a zero tangent, not a symbolic one, for each initial carry
+    leaf that a step gives a nonzero tangent (`_tangent_masks`), flagged nonzero.
 
     JAX's ``jvp`` of a ``scan`` finds which carry tangents are nonzero by
     differentiating the body until nothing changes, and under ``grad`` its partial
@@ -1033,19 +1033,17 @@ def _settle_carry_tangents(loop: _Loop, primals, p_leaves, t_leaves, nz) -> list
     P, c0 = primals
     n_P = len(jax.tree.leaves(P))
     floats = [_is_float(x) for x in p_leaves]
-    nz_P = [z for z, f in zip(nz[:n_P], floats[:n_P], strict=True) if f]
-    nz_c = [z for z, f in zip(nz[n_P:], floats[n_P:], strict=True) if f]
+    nz_P, nz_c = _pick(floats[:n_P], nz[:n_P]), _pick(floats[n_P:], nz[n_P:])
     sources = [t for t, z, f in zip(t_leaves, nz, floats, strict=True) if z and f and t.size]
     if not sources or all(nz_c):
-        return t_leaves
+        return t_leaves, nz
     _, mc = _tangent_masks(loop.step, P, c0, nz_P, nz_c)
-    source = sources[0]
     it = iter(mc)
-    out = list(t_leaves)
+    t_leaves, nz = list(t_leaves), list(nz)
     for i in range(n_P, len(p_leaves)):
         if floats[i] and next(it) and not nz[i]:
-            out[i], nz[i] = _zero_like_tangent(p_leaves[i], source), True
-    return out
+            t_leaves[i], nz[i] = _zero_like_tangent(p_leaves[i], sources[0]), True
+    return t_leaves, nz
 
 
 def _zero_like_tangent(x, source):
