@@ -6,15 +6,23 @@ import sys
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
-#: XLA's CPU compiler has two code generators for fused kernels: the MLIR "fusion
-#: emitters" (its default since 2025) and the older LLVM IR emitters. Measured on this
-#: suite's 2-core CPU (2026-11-25), the older ones compile the library's programs 1.2 to
-#: 1.6x faster and run them as fast or faster; the suite spends most of its time in XLA's
-#: compiler, and took 6:35 against 9:36 with them. The tests therefore run with them
-#: (every worker and notebook kernel inherits this process's XLA_FLAGS), unless
-#: SO3JAX_TEST_XLA_DEFAULTS=1 asks for XLA's own defaults or a jaxlib no longer knows the
-#: flag. Results agree to round-off either way; nothing in the library depends on it.
-XLA_CPU_FLAG = "--xla_cpu_use_fusion_emitters=false"
+#: XLA settings for the suite's CPU compilations, which take most of its time:
+#:
+#: - XLA's CPU compiler has two code generators for fused kernels: the MLIR "fusion
+#:   emitters" (its default since 2025) and the older LLVM IR emitters. Measured on this
+#:   suite's 2-core CPU (2026-11-25), the older ones compile the library's programs 1.2 to
+#:   1.6x faster and run them as fast or faster (the suite: 6:35 against 9:36).
+#: - LLVM's optimisation level 0 instead of 3 (2026-11-26): the tests' programs run for
+#:   milliseconds, so optimising their machine code costs more than it saves. The whole
+#:   suite took 9:04 against 12:57 (each module 0.6 to 0.9x as long); the few tests that
+#:   run long enough for optimised code to pay ask for level 3 per program (the
+#:   million-step runs of ``test_integrators.py``: 37 s at level 0 against 20 s).
+#:
+#: Every worker and notebook kernel inherits this process's XLA_FLAGS. A flag the jaxlib
+#: no longer knows is left out (JAX 0.11's XLA rejects the first); the caller's own
+#: XLA_FLAGS win, and SO3JAX_TEST_XLA_DEFAULTS=1 asks for XLA's defaults. Results agree to
+#: round-off either way; nothing in the library depends on these settings.
+XLA_CPU_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
 
 
 def _xla_accepts(flags: str) -> bool:
@@ -37,11 +45,11 @@ def _choose_xla_flags() -> None:
     if os.environ.get("PYTEST_XDIST_WORKER") or os.environ.get("SO3JAX_TEST_XLA_DEFAULTS"):
         return  # a worker inherits the controller's choice
     flags = os.environ.get("XLA_FLAGS", "")
-    if "fusion_emitters" in flags:
-        return  # the caller chose
-    candidate = f"{flags} {XLA_CPU_FLAG}".strip()
-    if _xla_accepts(candidate):
-        os.environ["XLA_FLAGS"] = candidate
+    ours = [f for f in XLA_CPU_FLAGS if f.split("=")[0] not in flags]  # the caller's win
+    if ours and not _xla_accepts(" ".join([flags, *ours]).strip()):
+        ours = [f for f in ours if _xla_accepts(f"{flags} {f}".strip())]
+    if ours:
+        os.environ["XLA_FLAGS"] = " ".join([flags, *ours]).strip()
 
 
 _choose_xla_flags()  # before JAX starts its backend in this process
@@ -50,32 +58,34 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-#: Modules by their share of the suite's time (seconds on the 2-core CPU, 2026-11-25, with
-#: the older emitters above), longest first. pytest-xdist's ``--dist loadfile`` hands whole
-#: modules to its workers in collection order (with ``--no-loadscope-reorder``, set in
-#: pyproject.toml; by default it orders them by their number of tests), so the long ones
-#: start first and the short ones fill the end: the workers finished 7 s apart (5:27 in
-#: all; ordered by test count, 25 to 39 s apart). Unlisted modules go last.
+#: Modules by their share of the suite's time (seconds summed over their tests on the 2-core
+#: CPU, 2026-11-26, with the XLA settings above), longest first. pytest-xdist's
+#: ``--dist loadfile`` hands whole modules to its workers in collection order (with
+#: ``--no-loadscope-reorder``, set in pyproject.toml; by default it orders them by their
+#: number of tests), so the long ones start first and the short ones fill the end (on
+#: 2026-11-25 the workers finished 7 s apart; ordered by test count, 25 to 39 s apart).
+#: Unlisted modules go last.
 _MODULE_SECONDS = {
-    "test_benchmarks.py": 83,
-    "test_quadrotor.py": 75,
-    "test_engine.py": 61,
-    "test_notebooks.py": 58,
-    "test_adaptive.py": 47,
-    "test_sweep.py": 39,
-    "test_scalarize.py": 37,
-    "test_tune.py": 31,
-    "test_integrators.py": 30,
-    "test_simulate.py": 27,
-    "test_so3_grads.py": 21,
-    "test_cli.py": 19,
-    "test_scenes_tracking.py": 18,
-    "test_ambient.py": 17,
-    "test_suslov.py": 14,
-    "test_sweep_outcomes.py": 13,
-    "test_sweep_params.py": 11,
-    "test_so3.py": 10,
-    "test_sweep_distributed.py": 9,
+    "test_engine.py": 139,
+    "test_benchmarks.py": 116,
+    "test_notebooks.py": 100,
+    "test_quadrotor.py": 77,
+    "test_adaptive.py": 66,
+    "test_scalarize.py": 63,
+    "test_integrators.py": 61,
+    "test_sweep.py": 56,
+    "test_tune.py": 54,
+    "test_simulate.py": 50,
+    "test_cli.py": 36,
+    "test_ambient.py": 32,
+    "test_so3_grads.py": 32,
+    "test_scenes_tracking.py": 28,
+    "test_so3.py": 26,
+    "test_sweep_outcomes.py": 20,
+    "test_suslov.py": 18,
+    "test_sweep_distributed.py": 18,
+    "test_benchmark_labels.py": 16,
+    "test_sweep_params.py": 15,
 }
 
 
