@@ -4,15 +4,31 @@ An embedded RKMK pair (`RKMK45`, `RKMKTsit5`, `RKMK32`) runs as a diffrax solver
 (`diffrax_solver`) under a `diffrax.PIDController`: the step size follows the
 error estimate taken in the Lie algebra, every rotation stays on SO(3), and the
 saved points between steps come from the pair's dense output on the group.
+
+Derivatives (default ``adjoint=None``) hang on one ``jax.custom_jvp``, as the
+fixed-step engine's do (`so3jax._engine`): through at most
+`so3jax._engine.FORWARD_JACOBIAN_MAX` differentiated scalars (two gains, six
+per-axis gains) the run computes its value and its Jacobian in one pass, JAX's
+``jvp`` of the run through `diffrax.ForwardMode` with the unit tangents batched
+over one primal; the tangent is that Jacobian times the input tangent, which JAX
+transposes for ``grad``. Through more scalars, forward mode is the same ``jvp``
+and reverse mode `diffrax.RecursiveCheckpointAdjoint`'s backward pass, joined by
+``jax.custom_derivatives.linear_call``. Both are derivatives of the same
+discretised run (diffrax holds the step sizes constant to autodiff), equal to
+round-off.
 """
 
 from __future__ import annotations
+
+import math
 
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero, linear_call
 
+from . import _engine
 from ._integrators import AbstractLieSolver
 from ._integrators._diffrax import DiffraxLieAdaptiveSolver, diffrax_solver, lie_term
 from ._scene import Scene
@@ -76,8 +92,7 @@ def simulate_adaptive(
     `diffrax.PIDController` so that the algebra error ``|u_high - u_low|`` (and
     the vector-part error) stays below ``atol + rtol |y|``; usually called as
     ``simulate(scene, RKMK45(), t1=..., rtol=..., atol=...)``. Works under
-    `jit`, `vmap` and `grad` (through `diffrax.RecursiveCheckpointAdjoint`
-    by default).
+    `jit`, `vmap`, `grad` and `jacfwd` (see `adjoint`).
 
     **Arguments:**
 
@@ -95,7 +110,12 @@ def simulate_adaptive(
       group.
     - `dt0`: initial step (default: diffrax's heuristic).
     - `max_steps`: most steps (accepted + rejected); then the run is flagged.
-    - `adjoint`: a diffrax adjoint (default `diffrax.RecursiveCheckpointAdjoint()`).
+    - `adjoint`: a diffrax adjoint for JAX to differentiate through. Default:
+      the engine's choice (module docstring): through at most 8 differentiated
+      scalars the one-pass Jacobian (`diffrax.ForwardMode` with the unit
+      tangents batched over one run), for ``grad`` and ``jacfwd`` alike;
+      through more, `diffrax.ForwardMode` for forward mode and
+      `diffrax.RecursiveCheckpointAdjoint` for reverse mode.
 
     **Returns:** a `Trajectory` at the saved times whose `extras` also hold
     ``num_steps``, ``num_accepted_steps``, ``num_rejected_steps`` and
@@ -141,9 +161,110 @@ def simulate_adaptive(
     if dt0 is not None:
         dt0 = _positive_scalar(dt0, "dt0", dtype)
     max_steps = _check_int(max_steps, "max_steps", 1)
-    if adjoint is None:
-        adjoint = diffrax.RecursiveCheckpointAdjoint()
-    return _simulate_adaptive(scene, solver, t0, t1, ts, rtol, atol, dt0, max_steps, adjoint)
+    args = (scene, solver, t0, t1, ts, rtol, atol, dt0)
+    if adjoint is not None:
+        return _simulate_adaptive(*args, max_steps, adjoint)
+    return _simulate_default(args, max_steps)
+
+
+@eqx.filter_jit
+def _simulate_default(args, max_steps: int):
+    """The run with the engine's derivatives (module docstring); jitted, so that an
+    eager call pays for building them once."""
+    scene, t0 = args[0], args[2]
+    if _closes_over_tracers(scene, t0):
+        # A custom_jvp cannot differentiate through values its function closes
+        # over; JAX's own autodiff can.
+        return _simulate_adaptive(*args, max_steps, diffrax.RecursiveCheckpointAdjoint())
+    dyn, static = eqx.partition(args, eqx.is_array)
+    return _differentiable(static, max_steps)(dyn)
+
+
+def _closes_over_tracers(scene: Scene, t0) -> bool:
+    """Whether the scene's functions close over traced values (a reference written as a
+    closure over a traced amplitude, say) rather than holding them as leaves."""
+    dyn, static = eqx.partition(scene, eqx.is_array)
+
+    def fields(dyn, t, y):
+        sc = eqx.combine(dyn, static)
+        return sc.vector_field(t, y), sc.observe(t, y)
+
+    _, consts = jax.closure_convert(fields, dyn, t0, scene.y0)
+    return any(isinstance(c, jax.core.Tracer) for c in consts)
+
+
+def _differentiable(static, max_steps: int):
+    """The run as a function of its arrays, with the engine's derivatives (module docstring)."""
+
+    def run(dyn, adjoint):
+        return _simulate_adaptive(*eqx.combine(dyn, static), max_steps, adjoint)
+
+    @jax.custom_jvp
+    def f(dyn):
+        return run(dyn, diffrax.RecursiveCheckpointAdjoint())
+
+    def f_jvp(primals, tangents):
+        (dyn,), (tdyn,) = primals, tangents
+        leaves, treedef = jax.tree.flatten(dyn)
+        t_leaves = jax.tree.leaves(tdyn, is_leaf=lambda t: isinstance(t, SymbolicZero))
+        nz = [
+            not isinstance(t, SymbolicZero) and _engine._is_float(x)
+            for x, t in zip(leaves, t_leaves, strict=True)
+        ]
+        xs = [x for x, z in zip(leaves, nz, strict=True) if z]
+        ts = [t for t, z in zip(t_leaves, nz, strict=True) if z]
+
+        def g(adjoint, leaves, xs):
+            out = run(jax.tree.unflatten(treedef, _engine._fill(nz, xs, leaves)), adjoint)
+            return _engine._floats(out)
+
+        if not xs:
+            out = f(dyn)
+            zeros = [jnp.zeros_like(y) for y in _engine._floats(out)]
+            return out, _engine._tangent_tree(out, zeros)
+        n = sum(math.prod(jnp.shape(x)) for x in xs)
+        if n <= _engine.FORWARD_JACOBIAN_MAX:
+            out, J = _jacobian(run, treedef, leaves, nz, xs)
+            coef = jnp.concatenate([jnp.ravel(t) for t in ts])
+            dout = [jnp.tensordot(coef.astype(Jk.dtype), Jk, axes=1) for Jk in J]
+            return out, _engine._tangent_tree(out, dout)
+        out = f(dyn)
+
+        # Every input is a residual: JAX may trace the transpose in another trace than
+        # this one, so neither function may close over this trace's values.
+        def tangent(res, lin):
+            forward = lambda *xs: g(diffrax.ForwardMode(), res, xs)
+            return jax.jvp(forward, tuple(_engine._pick(nz, res)), tuple(lin))[1]
+
+        def transpose(res, cts):
+            reverse = lambda *xs: g(diffrax.RecursiveCheckpointAdjoint(), res, xs)
+            return list(jax.vjp(reverse, *_engine._pick(nz, res))[1](cts))
+
+        dout = linear_call(tangent, transpose, list(leaves), ts)
+        return out, _engine._tangent_tree(out, dout)
+
+    f.defjvp(f_jvp, symbolic_zeros=True)
+    return f
+
+
+def _jacobian(run, treedef, leaves, nz, xs):
+    """The run and its Jacobian in the nonzero inputs ``xs`` (``n`` scalars), in one pass.
+
+    ``jax.jvp`` through `diffrax.ForwardMode` with the ``n`` unit tangents
+    batched over it: the primal runs once, unbatched (``out_axes=None``), and
+    each float output gets a leading axis of ``n`` columns.
+    """
+    cols = _engine._unit_columns(xs)
+
+    def g(*xs):
+        out = run(jax.tree.unflatten(treedef, _engine._fill(nz, xs, leaves)), diffrax.ForwardMode())
+        return _engine._floats(out), out
+
+    def column(*ts):
+        return jax.jvp(g, tuple(xs), ts, has_aux=True)[1:]
+
+    dout, out = jax.vmap(column, out_axes=(0, None))(*cols)
+    return out, dout
 
 
 @eqx.filter_jit

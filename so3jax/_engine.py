@@ -1131,13 +1131,8 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple)
     more (`BATCHED_LAYOUT`).
     """
     pf, cf = _floats(P), _floats(c0)
-    sizes = [math.prod(jnp.shape(x)) for x in lin]
-    n = sum(sizes)
-    starts = np.cumsum([0] + sizes[:-1]).tolist()
-    cols = [
-        jnp.eye(n, dtype=jnp.result_type(x))[:, a : a + k].reshape((n,) + jnp.shape(x))
-        for x, a, k in zip(lin, starts, sizes, strict=True)
-    ]
+    cols = _unit_columns(lin)
+    n = len(cols[0])
     dP, dc = _masked_tangents(nz, cols, mP, mc, pf, cf, (n,))
     jac = _dual(
         functools.partial(loop.jac_array, mP, mc),
@@ -1151,6 +1146,18 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple)
     dcN = [jnp.tensordot(coef.astype(J.dtype), J, axes=1) for J in JcN]
     dcNf = _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(cN)])
     return (ys, cN), (dys, _tangent_tree(cN, dcNf))
+
+
+def _unit_columns(xs: list) -> list:
+    """The ``n`` unit tangents of the arrays ``xs`` (``n`` scalars in all), batched:
+    for each array, ``(n,) + shape`` with one 1 per column, in the order of ``ravel``."""
+    sizes = [math.prod(jnp.shape(x)) for x in xs]
+    n = sum(sizes)
+    starts = np.cumsum([0] + sizes[:-1]).tolist()
+    return [
+        jnp.eye(n, dtype=jnp.result_type(x))[:, a : a + k].reshape((n,) + jnp.shape(x))
+        for x, a, k in zip(xs, starts, sizes, strict=True)
+    ]
 
 
 def _bound_whole(fn: Callable) -> Callable:

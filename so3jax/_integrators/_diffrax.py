@@ -182,8 +182,12 @@ class LieInterpolation(diffrax.AbstractLocalInterpolation):
     coords: str = eqx.field(static=True, default="exp")
 
     def _at(self, t) -> LieState:
-        theta = (t - self.t0) / (self.t1 - self.t0)
-        theta = jnp.asarray(theta, self.cu.dtype)
+        # An empty step (t0 == t1: a lane of a vmapped run that has finished, stepping
+        # on while others go on) would divide 0 by 0: its NaN is selected away in the
+        # value but poisons reverse mode (0 times NaN), as diffrax's linear_rescale knows.
+        empty = self.t1 == self.t0
+        theta = (t - self.t0) / jnp.where(empty, 1, self.t1 - self.t0)
+        theta = jnp.asarray(jnp.where(empty, 0, theta), self.cu.dtype)
         u = jnp.zeros_like(self.cu[0])
         for c in self.cu:
             u = (u + c) * theta
