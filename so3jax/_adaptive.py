@@ -211,12 +211,10 @@ def _differentiable(static, max_steps: int):
             not isinstance(t, SymbolicZero) and _engine._is_float(x)
             for x, t in zip(leaves, t_leaves, strict=True)
         ]
-        xs = [x for x, z in zip(leaves, nz, strict=True) if z]
-        ts = [t for t, z in zip(t_leaves, nz, strict=True) if z]
+        xs, ts = _engine._pick(nz, leaves), _engine._pick(nz, t_leaves)
 
-        def g(adjoint, leaves, xs):
-            out = run(jax.tree.unflatten(treedef, _engine._fill(nz, xs, leaves)), adjoint)
-            return _engine._floats(out)
+        def at(adjoint, leaves, xs):  # the run with the nonzero inputs set to xs
+            return run(jax.tree.unflatten(treedef, _engine._fill(nz, xs, leaves)), adjoint)
 
         if not xs:
             out = f(dyn)
@@ -224,7 +222,7 @@ def _differentiable(static, max_steps: int):
             return out, _engine._tangent_tree(out, zeros)
         n = sum(math.prod(jnp.shape(x)) for x in xs)
         if n <= _engine.FORWARD_JACOBIAN_MAX:
-            out, J = _jacobian(run, treedef, leaves, nz, xs)
+            out, J = _jacobian(lambda *xs: at(diffrax.ForwardMode(), leaves, xs), xs)
             coef = jnp.concatenate([jnp.ravel(t) for t in ts])
             dout = [jnp.tensordot(coef.astype(Jk.dtype), Jk, axes=1) for Jk in J]
             return out, _engine._tangent_tree(out, dout)
@@ -233,11 +231,11 @@ def _differentiable(static, max_steps: int):
         # Every input is a residual: JAX may trace the transpose in another trace than
         # this one, so neither function may close over this trace's values.
         def tangent(res, lin):
-            forward = lambda *xs: g(diffrax.ForwardMode(), res, xs)
+            forward = lambda *xs: _engine._floats(at(diffrax.ForwardMode(), res, xs))
             return jax.jvp(forward, tuple(_engine._pick(nz, res)), tuple(lin))[1]
 
         def transpose(res, cts):
-            reverse = lambda *xs: g(diffrax.RecursiveCheckpointAdjoint(), res, xs)
+            reverse = lambda *xs: _engine._floats(at(diffrax.RecursiveCheckpointAdjoint(), res, xs))
             return list(jax.vjp(reverse, *_engine._pick(nz, res))[1](cts))
 
         dout = linear_call(tangent, transpose, list(leaves), ts)
@@ -247,23 +245,22 @@ def _differentiable(static, max_steps: int):
     return f
 
 
-def _jacobian(run, treedef, leaves, nz, xs):
-    """The run and its Jacobian in the nonzero inputs ``xs`` (``n`` scalars), in one pass.
+def _jacobian(run, xs):
+    """``run(*xs)`` and its Jacobian in ``xs`` (``n`` scalars in all), in one pass.
 
-    ``jax.jvp`` through `diffrax.ForwardMode` with the ``n`` unit tangents
-    batched over it: the primal runs once, unbatched (``out_axes=None``), and
-    each float output gets a leading axis of ``n`` columns.
+    ``run`` steps through `diffrax.ForwardMode`; its ``jvp`` with the ``n`` unit
+    tangents batched over it runs the primal once, unbatched (``out_axes=None``),
+    and gives each float output a leading axis of ``n`` columns.
     """
-    cols = _engine._unit_columns(xs)
 
     def g(*xs):
-        out = run(jax.tree.unflatten(treedef, _engine._fill(nz, xs, leaves)), diffrax.ForwardMode())
+        out = run(*xs)
         return _engine._floats(out), out
 
     def column(*ts):
         return jax.jvp(g, tuple(xs), ts, has_aux=True)[1:]
 
-    dout, out = jax.vmap(column, out_axes=(0, None))(*cols)
+    dout, out = jax.vmap(column, out_axes=(0, None))(*_engine._unit_columns(xs))
     return out, dout
 
 
