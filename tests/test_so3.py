@@ -814,8 +814,12 @@ def test_random_rotation_shape_dtype_key():
     assert out((2,), jnp.float32).dtype == jnp.float32
     R32 = random_rotation(key, (16,), jnp.float32)
     assert R32.dtype == jnp.float32
-    assert np.all(f64(J.orthogonality_error(R32)) <= 1e-6)
-    assert_close(np.linalg.det(f64(R32)), 1.0, 1e-6)
+    # Within 32 float32 epsilons of the group: over 1000 draws the worst was 13 eps off
+    # orthogonal and 9 eps off det 1 (the rounding of the normalisation and the products
+    # depends on the CPU's instructions: 1e-6, about 8 eps, failed on one machine).
+    eps32 = float(np.finfo(np.float32).eps)
+    assert np.all(f64(J.orthogonality_error(R32)) <= 32 * eps32)
+    assert_close(np.linalg.det(f64(R32)), 1.0, 32 * eps32)
     assert np.array_equal(random_rotation(key, (16,), jnp.float32), R32)  # deterministic
     other = random_rotation(jax.random.key(2), (16,), jnp.float32)
     assert not np.allclose(other, R32)
