@@ -321,13 +321,14 @@ def checkpoint_length(n_steps: int) -> int:
 #: / scalarized with cuts) for 4 runs, 14.8 / 19.4 / 29.7 ms for 16, 24.6 / 23.8 / 31.6
 #: for 32, 48 / 37 / 39 for 64 and 116 / 101 / 50 for 128. The tangent and Jacobian
 #: programs need the cuts from 32 runs on (uncut they ran 2 to 3x slower than the array
-#: layout). ``"scalar"`` is ``program="scalar"`` (benchmarks).
+#: layout). ``"scalar"`` and ``"array"`` are ``program="scalar"`` and ``"array"`` (benchmarks).
 BATCHED_LAYOUT = {
     "run": (32, 64),
     "scalar": (1, 64),
     "tangent": (32, 32),
     "jacobian": (32, 32),
     "adjoint": (None, None),
+    "array": (None, None),
 }
 
 #: On a GPU, the entries that differ from `BATCHED_LAYOUT` (the others are the CPU's).
@@ -980,8 +981,8 @@ def run(
         return loop.fwd_checkpointed(P, carry0)
     if program in ("auto", "adjoint") and _HAVE_LINEAR_CALL_BATCHING:
         return _adjoint_run(loop, P, carry0, reverse=program)
-    if program == "array":
-        fwd = loop.fwd_array
+    if program == "array":  # batched by `_dual` too, so every output is (`_batched_with`)
+        fwd = _dual(loop.fwd_array, loop.fwd_array, "array")
     elif program == "scalar":
         fwd = _dual(_scalar_or_array(loop), loop.fwd_scalar, "scalar")
     else:
@@ -993,7 +994,11 @@ def run(
     def f(P, c0):
         return fwd(P, c0)
 
-    f.defjvp(functools.partial(_checkpointed_jvp, loop), symbolic_zeros=True)
+    def f_jvp(primals, tangents):
+        out, tan = _checkpointed_jvp(loop, primals, tangents)
+        return _batched_with(out, primals), tan
+
+    f.defjvp(f_jvp, symbolic_zeros=True)
     return f(P, carry0)
 
 
@@ -1046,6 +1051,33 @@ def _settle_carry_tangents(loop: _Loop, primals, p_leaves, t_leaves, nz) -> tupl
     return t_leaves, nz
 
 
+def _batched_with(out, inputs):
+    """``out`` with a zero added to each numeric leaf, computed from every numeric leaf
+    of ``inputs``: under ``vmap``, every output is batched wherever an input is.
+
+    A ``custom_jvp`` function and its rule must agree on which outputs a batch
+    batches: ``vmap`` of a jitted run batches the function alone (its jaxpr), and
+    a later ``jvp`` of that batched program runs the rule in its place. The
+    engine's forward programs batch every output (`_dual`'s ``custom_vmap``
+    rule, ``program="array"`` included); JAX's ``jvp`` of the checkpointed array
+    program batches only the outputs that depend on a batched input or tangent
+    (the run's times, say, do not), so the rule that runs it passes its outputs
+    through here. Without it, ``jacfwd`` and ``grad`` of the mean of a ``vmap`` over
+    the quadrotor's 12 gains raised "Cannot concatenate arrays with different
+    numbers of dimensions" (S39). The zeros are ``where(False, ...)``
+    (not ``0 * x``: an infinite input stays out of the values), which XLA folds.
+    """
+    srcs = [
+        jnp.ravel(x)[0]
+        for x in jax.tree.leaves(inputs)
+        if jnp.size(x) and jnp.issubdtype(jnp.result_type(x), jnp.number)
+    ]
+    if not srcs:
+        return out
+    zero = functools.reduce(jnp.add, [jnp.where(False, s, 0).astype(jnp.int32) for s in srcs])
+    return jax.tree.map(lambda x: _batch_by(x, zero), out)
+
+
 def _zero_like_tangent(x, source):
     """Zeros shaped like ``x``, computed from the tangent ``source`` (values unused)."""
     s = jnp.ravel(source)[0]
@@ -1090,7 +1122,8 @@ def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
             return out, (dys, _tangent_tree(out[1], [jnp.zeros_like(x) for x in _floats(out[1])]))
         n_lin = sum(math.prod(jnp.shape(x)) for x in lin)
         if reverse == "auto" and n_lin > FORWARD_JACOBIAN_MAX:
-            return _checkpointed_jvp(loop, primals, tangents)
+            out, tan = _checkpointed_jvp(loop, primals, tangents)
+            return _batched_with(out, primals), tan
         mP, mc = _tangent_masks(loop.step, P, c0, nz[: len(pf)], nz[len(pf) :])
         if reverse == "auto":
             return _jacobian_jvp(loop, P, c0, nz, lin, mP, mc)

@@ -5,6 +5,8 @@ autodiff of the plain array program (``program="autodiff"``), central finite
 differences, and Python loops over single runs.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -239,6 +241,44 @@ def test_vmap_of_grad_equals_loop_of_grads():
         assert _rel(summed, loop) < 1e-12
         jac = jax.jit(jax.jacfwd(lambda ps: jax.vmap(lambda p: _toy(p, program))(ps)))(ps)
         assert _rel(np.diag(jac), loop) < 1e-12
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _toy_times(P, program):
+    """`_toy` through 9 scalars, jitted, with an observation that no input moves (a time)
+    joined to a value that the inputs move, as `so3jax.simulate` joins ``t0`` and its times."""
+
+    def step(P, c):
+        dx = jnp.sin(P[:3] * c[0] * _W) + 0.1 * P[3:6] ** 2 + 0.01 * P[6:]
+        return (c[0] + 0.1 * dx, c[1] + 1)
+
+    def observe(P, c):
+        return jnp.sum(_W * c[0] ** 2), 0.5 * c[1]
+
+    c0 = (jnp.array([0.1, 0.4, -0.3]), jnp.array(0, jnp.int32))
+    (ys, ts), cN = _engine.run(step, observe, P, c0, 21, 3, program=program)
+    ts = jnp.concatenate([0 * P[:1], ts])
+    return jnp.sum(ys) + jnp.sum(jnp.cos(cN[0])) + jnp.sum(ts * P[0])
+
+
+def test_derivatives_of_a_jitted_batch_through_more_than_8_scalars():
+    """``vmap`` batches a jitted run's jaxpr, the ``custom_jvp`` function alone; ``jvp``
+    then runs the rule on the batched program. The rule through more than
+    `FORWARD_JACOBIAN_MAX` scalars (JAX's ``jvp`` of the checkpointed program) must
+    batch its outputs as the function does: it did not batch the times, and ``jacfwd``
+    and ``grad`` of such a batch (the quadrotor's 12 gains) raised "Cannot concatenate
+    arrays with different numbers of dimensions"."""
+    ps = jnp.stack([jnp.linspace(0.5, 1.5, 9), jnp.linspace(1.2, 0.3, 9)])
+
+    def mean(program):
+        return lambda k: jnp.mean(jax.vmap(lambda p: _toy_times(p * k, program))(ps))
+
+    k = jnp.ones(9)
+    ref = jax.grad(mean("autodiff"))(k)
+    assert np.all(np.isfinite(ref)) and np.abs(ref).min() > 0
+    for program in ("auto", "array"):
+        assert _rel(jax.jacfwd(mean(program))(k), ref) < 1e-12, program
+        assert _rel(jax.grad(mean(program))(k), ref) < 1e-12, program
 
 
 def test_batched_programs_are_traced_once(monkeypatch):
