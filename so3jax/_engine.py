@@ -994,11 +994,7 @@ def run(
     def f(P, c0):
         return fwd(P, c0)
 
-    def f_jvp(primals, tangents):
-        out, tan = _checkpointed_jvp(loop, primals, tangents)
-        return _batched_with(out, primals), tan
-
-    f.defjvp(f_jvp, symbolic_zeros=True)
+    f.defjvp(functools.partial(_checkpointed_jvp, loop), symbolic_zeros=True)
     return f(P, carry0)
 
 
@@ -1021,7 +1017,8 @@ def _checkpointed_jvp(loop: _Loop, primals, tangents):
 
     xs = [p for p, z in zip(p_leaves, nz, strict=True) if z]
     ts = [t for t, z in zip(t_leaves, nz, strict=True) if z]
-    return jax.jvp(g, xs, ts)
+    out, tan = jax.jvp(g, xs, ts)
+    return _batched_with(out, primals), tan  # batched as the run's forward programs are
 
 
 def _settle_carry_tangents(loop: _Loop, primals, p_leaves, t_leaves, nz) -> tuple[list, list]:
@@ -1061,7 +1058,7 @@ def _batched_with(out, inputs):
     engine's forward programs batch every output (`_dual`'s ``custom_vmap``
     rule, ``program="array"`` included); JAX's ``jvp`` of the checkpointed array
     program batches only the outputs that depend on a batched input or tangent
-    (the run's times, say, do not), so the rule that runs it passes its outputs
+    (the run's times, say, do not), so `_checkpointed_jvp` passes its outputs
     through here. Without it, ``jacfwd`` and ``grad`` of the mean of a ``vmap`` over
     the quadrotor's 12 gains raised "Cannot concatenate arrays with different
     numbers of dimensions" (S39). The zeros are ``where(False, ...)``
@@ -1122,8 +1119,7 @@ def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
             return out, (dys, _tangent_tree(out[1], [jnp.zeros_like(x) for x in _floats(out[1])]))
         n_lin = sum(math.prod(jnp.shape(x)) for x in lin)
         if reverse == "auto" and n_lin > FORWARD_JACOBIAN_MAX:
-            out, tan = _checkpointed_jvp(loop, primals, tangents)
-            return _batched_with(out, primals), tan
+            return _checkpointed_jvp(loop, primals, tangents)
         mP, mc = _tangent_masks(loop.step, P, c0, nz[: len(pf)], nz[len(pf) :])
         if reverse == "auto":
             return _jacobian_jvp(loop, P, c0, nz, lin, mP, mc)
