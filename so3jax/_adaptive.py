@@ -193,6 +193,14 @@ def _closes_over_tracers(scene: Scene, t0) -> bool:
     return any(isinstance(c, jax.core.Tracer) for c in consts)
 
 
+_SECOND_ORDER = (
+    "second derivatives of an adaptive run through more than "
+    f"{_engine.FORWARD_JACOBIAN_MAX} differentiated scalars need an explicit adjoint: "
+    "adjoint=diffrax.DirectAdjoint() (jax.hessian and every other order of forward and "
+    "reverse mode) or diffrax.ForwardMode() (forward mode only, e.g. jacfwd of jacfwd)"
+)
+
+
 def _differentiable(static, max_steps: int):
     """The run as a function of its arrays, with the engine's derivatives (module docstring)."""
 
@@ -238,7 +246,8 @@ def _differentiable(static, max_steps: int):
             reverse = lambda *xs: _engine._floats(at(diffrax.RecursiveCheckpointAdjoint(), res, xs))
             return list(jax.vjp(reverse, *_engine._pick(nz, res))[1](cts))
 
-        dout = linear_call(tangent, transpose, list(leaves), ts)
+        res = _engine.first_order_only(_SECOND_ORDER, list(leaves))
+        dout = linear_call(tangent, transpose, res, ts)
         return out, _engine._tangent_tree(out, dout)
 
     f.defjvp(f_jvp, symbolic_zeros=True)

@@ -412,13 +412,77 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
     (through the derivative programs' ``jvp`` and column ``vmap``, a second trace
     cost more than batching the first one). Tracers it closes over are constants
     of the jaxpr, closed over as before.
+
+    The call's derivative is JAX's own ``jvp`` of ``array_fn`` (a ``custom_jvp``),
+    for two reasons:
+
+    - **Second derivatives.** The engine's derivative rules run these programs on
+      primals; ``jax.hessian`` (or ``jacfwd`` / ``jvp`` over ``grad``) then
+      differentiates the rule's programs again. A ``custom_vmap`` differentiated
+      inside another transform's ``vmap`` or partial evaluator returned tangents
+      batched unlike their primals or unknown primals ("Custom JVP rule must
+      produce primal and tangent outputs with corresponding shapes",
+      "Linearization failed to produce known values"); JAX's ``jvp`` of the
+      plain array program composes with every transform (S40).
+    - **Bound whole under ``grad``.** When ``grad`` linearizes the engine's
+      ``custom_jvp`` rule, JAX runs that rule under its partial evaluator, whose
+      ``scan`` and ``cond`` rules partially evaluate a loop even when all its
+      inputs are known. The programs the rule runs on primals have only known
+      inputs, but under ``vmap`` their scalarized loop bodies were partially
+      evaluated anyway, and their fusion cuts hoisted out of the loop: the
+      gradient of the mean cost over 256 seed starts lowered in 5.7 s against
+      3.3 s, and compiled in 11.2 s against 8.3 s. A ``custom_jvp`` call whose
+      inputs are all known is bound whole (``JaxprTrace.process_custom_jvp_call``).
     """
 
+    @jax.custom_jvp
     def call(*args):
         closed, shape = jax.make_jaxpr(array_fn, return_shape=True)(*args)
         return _dual_of(_Traced(closed, jax.tree.structure(shape)), scalar_fn, what)(*args)
 
+    call.defjvp(functools.partial(_array_jvp, array_fn), symbolic_zeros=True)
     return call
+
+
+def _array_jvp(array_fn: Callable, primals, tangents):
+    """JAX's ``jvp`` of ``array_fn`` through the nonzero tangents, its outputs batched as
+    `_dual`'s batching rule batches them: every output, batch axis first.
+
+    JAX batches a ``custom_jvp`` call's function and its rule apart, and a jitted
+    batch (``vmap`` of `so3jax.rollout_cost`, say) fixes each output's batch axis
+    from the function's. `_dual`'s ``custom_vmap`` batches every output on axis 0;
+    JAX's ``vmap`` of a ``scan`` stacks on axis 0 and batches on axis 1, and leaves
+    unbatched what no batched input moves. Without `_batched_with` and `_front`,
+    ``jax.hessian`` of the mean cost over a batch of starts raised "Cannot
+    concatenate arrays with shapes that differ in dimensions other than the one
+    being concatenated" (S40).
+    """
+    leaves, treedef = jax.tree.flatten(primals)
+    t_leaves = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
+    nz = [not isinstance(t, SymbolicZero) for t in t_leaves]
+
+    def g(*xs):
+        return array_fn(*jax.tree.unflatten(treedef, _fill(nz, xs, leaves)))
+
+    out, tan = jax.jvp(g, tuple(_pick(nz, leaves)), tuple(_pick(nz, t_leaves)))
+    return _front(_batched_with(out, primals)), tan
+
+
+@jax.custom_jvp
+@custom_vmap
+def _front(x):
+    """``x`` unchanged; under ``vmap``, each batched leaf with its batch axis first."""
+    return x
+
+
+@_front.fun.def_vmap
+def _front_vmap(axis_size, in_batched, x):  # `custom_vmap` hands the rule axis 0
+    return x, in_batched[0]
+
+
+@_front.defjvp
+def _front_jvp(primals, tangents):  # JAX matches a rule's tangent axes to its primal's
+    return _front(primals[0]), tangents[0]
 
 
 class _Traced:
@@ -1081,6 +1145,11 @@ def _zero_like_tangent(x, source):
     return jnp.broadcast_to(jnp.where(False, s, 0).astype(jnp.result_type(x)), jnp.shape(x))
 
 
+_ADJOINT_FIRST_ORDER = (
+    'program="adjoint" has first derivatives only; for second derivatives '
+    '(jax.hessian, jvp or jacfwd of grad) use program="auto" (the default)'
+)
+
 #: Through at most this many differentiated scalars the run computes its Jacobian
 #: with its value, in one pass (`_jacobian_jvp`), for forward and reverse mode alike.
 FORWARD_JACOBIAN_MAX = 8
@@ -1123,7 +1192,7 @@ def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
         mP, mc = _tangent_masks(loop.step, P, c0, nz[: len(pf)], nz[len(pf) :])
         if reverse == "auto":
             return _jacobian_jvp(loop, P, c0, nz, lin, mP, mc)
-        out = _bound_whole(fwd)(P, c0)
+        out = fwd(P, c0)
         tan = _dual(
             functools.partial(loop.tan_array, mP, mc),
             functools.partial(loop.tan_scalar, mP, mc),
@@ -1141,11 +1210,26 @@ def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
             gP, gc = adj(P, c0, ct_ys, ct_cN)
             return [g for g, z in zip(list(gP) + list(gc), nz, strict=True) if z]
 
-        dys, dcNf = linear_call(tangent, transpose, (P, c0), lin)
+        dys, dcNf = linear_call(
+            tangent, transpose, first_order_only(_ADJOINT_FIRST_ORDER, (P, c0)), lin
+        )
         return out, (dys, _tangent_tree(out[1], dcNf))
 
     f.defjvp(f_jvp, symbolic_zeros=True)
     return f(P, carry0)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def first_order_only(why: str, res):
+    """``res`` (residuals of a ``linear_call``) unchanged; ``NotImplementedError(why)``
+    if they are differentiated, as in a second derivative: ``linear_call`` cannot
+    differentiate its residuals, and failed with a bare ``AssertionError``."""
+    return res
+
+
+@first_order_only.defjvp
+def _first_order_only_jvp(why, primals, tangents):
+    raise NotImplementedError(why)
 
 
 def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple):
@@ -1168,7 +1252,7 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple)
         functools.partial(loop.jac_scalar, mP, mc),
         "jacobian",
     )
-    ys, cN, Jys, JcN = _bound_whole(jac)(P, c0, dP, dc)
+    ys, cN, Jys, JcN = jac(P, c0, dP, dc)
     coef = jnp.concatenate([jnp.ravel(x) for x in lin])
 
     dys = jax.tree.map(lambda J: jnp.tensordot(coef.astype(J.dtype), J, axes=([0], [1])), Jys)
@@ -1187,25 +1271,6 @@ def _unit_columns(xs: list) -> list:
         jnp.eye(n, dtype=jnp.result_type(x))[:, a : a + k].reshape((n,) + jnp.shape(x))
         for x, a, k in zip(xs, starts, sizes, strict=True)
     ]
-
-
-def _bound_whole(fn: Callable) -> Callable:
-    """``fn`` behind a ``custom_jvp`` whose rule is JAX's own ``jvp`` of ``fn``.
-
-    The same function to every transform, except one: when ``grad`` linearizes
-    the engine's ``custom_jvp`` rule, JAX runs that rule under its partial
-    evaluator, whose ``scan`` and ``cond`` rules partially evaluate a loop even
-    when all its inputs are known. The programs the rule runs on primals (the
-    Jacobian program, the forward run) have only known inputs, but under
-    ``vmap`` their scalarized loop bodies were partially evaluated anyway, and
-    their fusion cuts hoisted out of the loop: the gradient of the mean cost
-    over 256 seed starts lowered in 5.7 s against 3.3 s now, and compiled in
-    11.2 s against 8.3 s. A ``custom_jvp`` call whose inputs are all known is
-    bound whole (``JaxprTrace.process_custom_jvp_call``).
-    """
-    g = jax.custom_jvp(fn)
-    g.defjvp(lambda primals, tangents: jax.jvp(fn, primals, tangents))
-    return g
 
 
 def _scalar_or_array(loop: _Loop) -> Callable:

@@ -199,7 +199,8 @@ def _sum(vals):
     return out
 
 
-def _reduce(x: np.ndarray, axes, combine) -> np.ndarray:
+def _reduce(x: np.ndarray, axes, combine, identity) -> np.ndarray:
+    """``combine`` over ``axes``; over an empty axis, the NumPy constant ``identity``."""
     axes = tuple(sorted(axes))
     keep = [d for d in range(x.ndim) if d not in axes]
     xt = x.transpose(keep + list(axes))
@@ -207,7 +208,8 @@ def _reduce(x: np.ndarray, axes, combine) -> np.ndarray:
     xt = xt.reshape(out_shape + (-1,))
     out = _obj(out_shape)
     for idx in np.ndindex(*out_shape):
-        out[idx] = functools.reduce(combine, list(xt[idx]))
+        parts = list(xt[idx])
+        out[idx] = functools.reduce(combine, parts) if parts else identity
     return out
 
 
@@ -302,6 +304,25 @@ def _closed(cj, args):
     return _eval(cj.jaxpr, [_const(c) for c in cj.consts], args)
 
 
+def _lowest(dtype):
+    return -np.inf if np.issubdtype(dtype, np.floating) else np.iinfo(dtype).min
+
+
+def _highest(dtype):
+    return np.inf if np.issubdtype(dtype, np.floating) else np.iinfo(dtype).max
+
+
+#: Reductions: how two components combine, and the result over an empty axis.
+_REDUCTIONS = {
+    "reduce_sum": (lambda a, b: a + b, lambda dt: 0),
+    "reduce_prod": (lambda a, b: a * b, lambda dt: 1),
+    "reduce_max": (jnp.maximum, _lowest),
+    "reduce_min": (jnp.minimum, _highest),
+    "reduce_and": (jnp.logical_and, lambda dt: True),
+    "reduce_or": (jnp.logical_or, lambda dt: False),
+}
+
+
 def _apply(eqn, ins):
     name = eqn.primitive.name
     p = eqn.params
@@ -349,18 +370,10 @@ def _apply(eqn, ins):
         return _iota(**p)
     if name == "dot_general":
         return _dot_general(ins[0], ins[1], p["dimension_numbers"])
-    if name == "reduce_sum":
-        return _reduce(x, p["axes"], lambda a, b: a + b)
-    if name == "reduce_max":
-        return _reduce(x, p["axes"], jnp.maximum)
-    if name == "reduce_min":
-        return _reduce(x, p["axes"], jnp.minimum)
-    if name == "reduce_and":
-        return _reduce(x, p["axes"], jnp.logical_and)
-    if name == "reduce_or":
-        return _reduce(x, p["axes"], jnp.logical_or)
-    if name == "reduce_prod":
-        return _reduce(x, p["axes"], lambda a, b: a * b)
+    if name in _REDUCTIONS:
+        combine, identity = _REDUCTIONS[name]
+        dtype = eqn.outvars[0].aval.dtype
+        return _reduce(x, p["axes"], combine, np.asarray(identity(dtype), dtype)[()])
     if name in ("pjit", "jit", "closed_call", "core_call", "remat", "remat2", "checkpoint"):
         cj = p.get("jaxpr") or p.get("call_jaxpr")
         if isinstance(cj, jex_core.ClosedJaxpr):

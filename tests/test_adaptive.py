@@ -334,6 +334,27 @@ def test_default_derivatives_agree_in_every_mode(free):
     np.testing.assert_allclose(g32, rev.y0.x, rtol=1e-4)
 
 
+def test_second_derivatives(free):
+    """``jax.hessian`` through the 3 start rates (the one-pass Jacobian, forward over
+    forward) equals ``jacfwd`` of ``jacfwd`` through `diffrax.ForwardMode`;
+    through all 30 floats the default derivatives (a ``linear_call``) have first
+    derivatives only, and a second one says which adjoint to pass (it failed with a
+    bare ``AssertionError``)."""
+
+    def rates(w, adjoint=None):
+        sc = eqx.tree_at(lambda sc: sc.y0.x, free, w)
+        tr = s.simulate(sc, s.RKMK32(), t1=0.5, rtol=1e-9, atol=1e-9, saveat=3, adjoint=adjoint)
+        return jnp.sum(tr.R[-1] * jnp.arange(9.0).reshape(3, 3)) + jnp.sum(tr.Omega**2)
+
+    w = free.y0.x
+    H = jax.jit(jax.hessian(rates))(w)
+    ref = jax.jit(jax.jacfwd(jax.jacfwd(lambda w: rates(w, diffrax.ForwardMode()))))(w)
+    assert np.abs(np.asarray(ref) - np.asarray(ref).T).max() < 1e-10 * np.abs(ref).max()
+    np.testing.assert_allclose(H, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
+    with pytest.raises(NotImplementedError, match="DirectAdjoint"):
+        jax.hessian(lambda sc: _free_cost(sc).sum())(free)
+
+
 def test_dense_output_of_an_empty_step_has_finite_derivatives():
     # Under vmap a finished run keeps taking empty steps (t0 == t1) while the others go
     # on; their dense output is selected away, but 0/0 there made every reverse-mode

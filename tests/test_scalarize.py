@@ -108,6 +108,32 @@ def test_scalarize_general_function():
             np.testing.assert_allclose(np.asarray(from_components(o)), np.asarray(r), atol=1e-12)
 
 
+def test_scalarize_reductions_over_an_empty_axis():
+    """A reduction over an empty axis (a sum over ``P[2:]`` of two parameters) is the
+    reduction's identity, as in JAX; the scalarizer raised "reduce() of empty iterable"."""
+
+    def f(x, n):
+        e, ei = x[:0], n[:0]
+        return (
+            jnp.sum(e) + x[0],
+            jnp.prod(e),
+            jnp.max(e, initial=-jnp.inf),
+            jnp.min(e, initial=jnp.inf),
+            jnp.max(ei, initial=jnp.iinfo(n.dtype).min),
+            jnp.all(e > 0),
+            jnp.any(e > 0),
+            jnp.sum(x.reshape(3, 1)[:, :0], axis=1),
+        )
+
+    x, n = jnp.array([1.5, -2.0, 0.5]), jnp.array([3, 1], jnp.int32)
+    ref = f(x, n)
+    out = scalarize(f, x, n)(to_components(x), to_components(n))
+    for r, o in zip(ref, out, strict=True):
+        o = np.asarray(from_components(o))
+        assert o.dtype == r.dtype and o.shape == r.shape
+        np.testing.assert_array_equal(o, np.asarray(r))
+
+
 def test_scalarize_rejects_unsupported_primitives():
     def f(x):
         return jnp.sort(x)
