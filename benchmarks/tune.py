@@ -16,7 +16,10 @@ engine (`so3jax._engine`):
 - reverse, no checkpoints (JAX's transpose, memory ~ n);
 - forward mode (default, `jax.jacfwd`, 2 tangents): the same one-pass Jacobian;
 - forward mode, JAX's ``jvp`` of the checkpointed array program
-  (``program="autodiff"``; the default before S19).
+  (``program="autodiff"``; the default before S19);
+- Hessian (default, `jax.hessian`: forward over reverse, 2 x 2): JAX's ``jvp`` of the
+  engine's one-pass Jacobian program, array layout (S40);
+- Hessian, JAX's autodiff of the checkpointed array program (``program="autodiff"``).
 
 For each: run time (min over repeats, compiled), compile time, and XLA's temp
 memory (`compiled.memory_analysis()`), at two horizons and two batch sizes;
@@ -59,6 +62,8 @@ VARIANTS = [
     "reverse, no checkpoints",
     "forward mode (jacfwd)",
     "forward mode, JAX's jvp",
+    "Hessian (default)",
+    "Hessian, autodiff",
 ]
 
 
@@ -128,6 +133,8 @@ def main(argv=None):
             "reverse, no checkpoints": jax.grad(lambda k: cost(k, None, "autodiff")),
             "forward mode (jacfwd)": jax.jacfwd(lambda k: cost(k, None)),
             "forward mode, JAX's jvp": jax.jacfwd(lambda k: cost(k, None, "autodiff")),
+            "Hessian (default)": jax.hessian(cost),
+            "Hessian, autodiff": jax.hessian(lambda k: cost(k, program="autodiff")),
         }
         assert list(variants) == VARIANTS
         if args.variants:  # the forward pass stays: it is the baseline of the ratios
@@ -137,6 +144,8 @@ def main(argv=None):
             variants.pop("reverse, no checkpoints")
             variants.pop("reverse, checkpointed")
             variants.pop("forward mode, JAX's jvp")
+            variants.pop("Hessian (default)")
+            variants.pop("Hessian, autodiff")
         base = None
         for name, fn in variants.items():
             r = measure(fn, k, repeats)
@@ -191,7 +200,8 @@ def main(argv=None):
         ax.set_ylabel(label)
         ax.set_yscale("log")
         ax.legend(fontsize=8)
-    fig.suptitle(f"gradient of the mean tracking cost, {method_name}, {jax.devices()[0].platform}")
+    platform = jax.devices()[0].platform
+    fig.suptitle(f"derivatives of the mean tracking cost, {method_name}, {platform}")
     C.save_figure(fig, png_path)
 
 
