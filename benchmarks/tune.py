@@ -85,6 +85,47 @@ def measure(fn, arg, repeats):
     }
 
 
+def figure(rows, batches, horizons, method_name, platform):
+    """Time and XLA temp memory of each variant, per batch size and horizon."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
+    names = list(dict.fromkeys(r["variant"] for r in rows))
+    for ax, key, label in (
+        (axes[0], "time_ratio", "time / forward pass"),
+        (axes[1], "temp_bytes", "XLA temp memory (bytes)"),
+    ):
+        combos = [(B, n) for B in batches for n in horizons]
+        width = 0.8 / len(combos)
+        for i, (B, n) in enumerate(combos):
+            vals = [
+                next(
+                    r[key]
+                    for r in rows
+                    if r["variant"] == v and r["n_steps"] == n and r["batch"] == B
+                )
+                for v in names
+            ]
+            ax.bar(
+                [j + width * i for j in range(len(names))],
+                vals,
+                width=width,
+                label=f"B={B}, {n} steps",
+            )
+        ax.set_xticks(
+            [j + 0.4 - width / 2 for j in range(len(names))],
+            names,
+            rotation=35,
+            ha="right",
+            fontsize=7,
+        )
+        if key == "time_ratio":
+            ax.axhline(3, color="k", ls=":", lw=1, label="target 3x")
+        ax.set_ylabel(label)
+        ax.set_yscale("log")
+        ax.legend(fontsize=8)
+    fig.suptitle(f"derivatives of the mean tracking cost, {method_name}, {platform}")
+    return fig
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
@@ -169,39 +210,8 @@ def main(argv=None):
     C.write_json(
         json_path, {"benchmark": "tune", "quick": args.quick, "env": C.environment(), "rows": rows}
     )
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
-    names = list(dict.fromkeys(r["variant"] for r in rows))
-    for ax, key, label in (
-        (axes[0], "time_ratio", "time / forward pass"),
-        (axes[1], "temp_bytes", "XLA temp memory (bytes)"),
-    ):
-        combos = [(B, n) for B in batches for n in horizons]
-        width = 0.8 / len(combos)
-        for i, (B, n) in enumerate(combos):
-            vals = [
-                next(
-                    r[key]
-                    for r in rows
-                    if r["variant"] == v and r["n_steps"] == n and r["batch"] == B
-                )
-                for v in names
-            ]
-            ax.bar(
-                [j + width * i for j in range(len(names))],
-                vals,
-                width=width,
-                label=f"B={B}, {n} steps",
-            )
-        ax.set_xticks(
-            [j + 0.4 - width / 2 for j in range(len(names))], names, rotation=20, fontsize=7
-        )
-        if key == "time_ratio":
-            ax.axhline(3, color="k", ls=":", lw=1, label="target 3x")
-        ax.set_ylabel(label)
-        ax.set_yscale("log")
-        ax.legend(fontsize=8)
     platform = jax.devices()[0].platform
-    fig.suptitle(f"derivatives of the mean tracking cost, {method_name}, {platform}")
+    fig = figure(rows, batches, horizons, method_name, platform)
     C.save_figure(fig, png_path)
 
 
