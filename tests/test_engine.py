@@ -319,40 +319,55 @@ def _toy_second(P, program, jit):
 
 
 @pytest.mark.parametrize("n", [2, 10])
-def test_second_derivatives_equal_autodiff(n):
+def test_second_derivatives_equal_autodiff(n, monkeypatch):
     """``jax.hessian`` and the other second (and third) derivatives of runs, jitted or
     not, single or batched (3 runs: the array layout; 40: scalarized), equal JAX's
     autodiff of the checkpointed array program. The engine's rules run their programs
     on primals; differentiating them again failed before S40 ("Custom JVP rule must
     produce primal and tangent outputs with corresponding shapes", "Linearization
-    failed to produce known values", and "Cannot concatenate" under a jitted batch)."""
+    failed to produce known values", and "Cannot concatenate" under a jitted batch).
+    Through few scalars a batch of 40 differentiates its one-pass Jacobian program
+    scalarized (`_engine._dual_jvp`), in forward and reverse mode."""
     p = jnp.linspace(1.3, 0.7, n)
     u = jnp.linspace(-1.0, 1.0, n)
+    scalarized = []
+    jac_scalar = _engine._Loop.jac_scalar
+
+    def spy(self, *args, **kwargs):
+        scalarized.append(1)
+        return jac_scalar(self, *args, **kwargs)
+
+    monkeypatch.setattr(_engine._Loop, "jac_scalar", spy)
 
     def mean(program, jit, ps):
         one = lambda q: _toy_second(q, program, jit)  # noqa: E731
         return lambda k: jnp.mean(jax.vmap(lambda q: one(q * k))(ps))
 
+    def jvp(f, t):
+        return lambda q: jax.jvp(f, (q,), (t,))[1]
+
     def cases(program):
         f = lambda q: _toy_second(q, program, False)  # noqa: E731
         fj = lambda q: _toy_second(q, program, True)  # noqa: E731
         ps = p * jnp.linspace(0.8, 1.2, 3)[:, None]
-        big = p * jnp.linspace(0.8, 1.2, 40)[:, None]
+        big = mean(program, True, p * jnp.linspace(0.8, 1.2, 40)[:, None])
         J = jax.jit  # one compiled program per case (eager ones compile piece by piece)
-        out = {
-            "hessian(mean jitted vmap 40)": J(jax.hessian(mean(program, True, big)))(jnp.ones(n))
-        }
+        out = {"hessian(mean jitted vmap 40)": J(jax.hessian(big))(jnp.ones(n))}
         if n > _engine.FORWARD_JACOBIAN_MAX:
             return out  # JAX's own jvp there: one case guards the composition
+        if program == "auto":
+            assert len(scalarized) == 2, scalarized  # the gradient's and the Hessian's
         return out | {
+            "jacrev(jacrev(mean jitted vmap 40))": J(jax.jacrev(jax.jacrev(big)))(jnp.ones(n)),
             "hessian": J(jax.hessian(f))(p),
             "jacrev(jacrev)": J(jax.jacrev(jax.jacrev(f)))(p),
-            "jvp(grad)": J(lambda p: jax.jvp(jax.grad(f), (p,), (u,))[1])(p),
+            "jvp(grad)": J(jvp(jax.grad(f), u))(p),
             "jacfwd^3": J(jax.jacfwd(jax.jacfwd(jax.jacfwd(f))))(p),
+            "jvp(jvp(jacfwd))": J(jvp(jvp(jax.jacfwd(f), u), -u))(p),
             "vmap(hessian), jitted": J(jax.vmap(jax.hessian(fj)))(ps),
-            "jvp(grad(mean jitted vmap 3))": J(
-                lambda k: jax.jvp(jax.grad(mean(program, True, ps)), (k,), (u,))[1]
-            )(jnp.ones(n)),
+            "jvp(grad(mean jitted vmap 3))": J(jvp(jax.grad(mean(program, True, ps)), u))(
+                jnp.ones(n)
+            ),
         }
 
     ref, got = cases("autodiff"), cases("auto")
