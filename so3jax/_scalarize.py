@@ -305,10 +305,14 @@ def _closed(cj, args):
 
 
 def _lowest(dtype):
+    if dtype == np.bool_:
+        return False
     return -np.inf if np.issubdtype(dtype, np.floating) else np.iinfo(dtype).min
 
 
 def _highest(dtype):
+    if dtype == np.bool_:
+        return True
     return np.inf if np.issubdtype(dtype, np.floating) else np.iinfo(dtype).max
 
 
