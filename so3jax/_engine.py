@@ -460,12 +460,18 @@ def _array_jvp(array_fn: Callable, primals, tangents):
     leaves, treedef = jax.tree.flatten(primals)
     t_leaves = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
     nz = [not isinstance(t, SymbolicZero) for t in t_leaves]
+    out, tan = _jvp_through(array_fn, treedef, leaves, t_leaves, nz)
+    return _front(_batched_with(out, primals)), tan
+
+
+def _jvp_through(fn: Callable, treedef, leaves: list, t_leaves: list, nz: list):
+    """JAX's ``jvp`` of ``fn(*unflatten(leaves))`` through the leaves flagged in ``nz``
+    alone (the others enter as constants: no tangent term where they are used)."""
 
     def g(*xs):
-        return array_fn(*jax.tree.unflatten(treedef, _fill(nz, xs, leaves)))
+        return fn(*jax.tree.unflatten(treedef, _fill(nz, xs, leaves)))
 
-    out, tan = jax.jvp(g, tuple(_pick(nz, leaves)), tuple(_pick(nz, t_leaves)))
-    return _front(_batched_with(out, primals)), tan
+    return jax.jvp(g, tuple(_pick(nz, leaves)), tuple(_pick(nz, t_leaves)))
 
 
 @jax.custom_jvp
@@ -1075,13 +1081,7 @@ def _checkpointed_jvp(loop: _Loop, primals, tangents):
     t_leaves = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
     nz = [not isinstance(t, SymbolicZero) for t in t_leaves]
     t_leaves, nz = _settle_carry_tangents(loop, primals, p_leaves, t_leaves, nz)
-
-    def g(*xs):
-        return loop.fwd_checkpointed(*jax.tree.unflatten(treedef, _fill(nz, xs, p_leaves)))
-
-    xs = [p for p, z in zip(p_leaves, nz, strict=True) if z]
-    ts = [t for t, z in zip(t_leaves, nz, strict=True) if z]
-    out, tan = jax.jvp(g, xs, ts)
+    out, tan = _jvp_through(loop.fwd_checkpointed, treedef, p_leaves, t_leaves, nz)
     return _batched_with(out, primals), tan  # batched as the run's forward programs are
 
 

@@ -199,8 +199,8 @@ def _sum(vals):
     return out
 
 
-def _reduce(x: np.ndarray, axes, combine, identity) -> np.ndarray:
-    """``combine`` over ``axes``; over an empty axis, the NumPy constant ``identity``."""
+def _reduce(x: np.ndarray, axes, combine, identity: Callable) -> np.ndarray:
+    """``combine`` over ``axes``; over an empty axis, the NumPy constant ``identity()``."""
     axes = tuple(sorted(axes))
     keep = [d for d in range(x.ndim) if d not in axes]
     xt = x.transpose(keep + list(axes))
@@ -209,7 +209,7 @@ def _reduce(x: np.ndarray, axes, combine, identity) -> np.ndarray:
     out = _obj(out_shape)
     for idx in np.ndindex(*out_shape):
         parts = list(xt[idx])
-        out[idx] = functools.reduce(combine, parts) if parts else identity
+        out[idx] = functools.reduce(combine, parts) if parts else identity()
     return out
 
 
@@ -377,7 +377,7 @@ def _apply(eqn, ins):
     if name in _REDUCTIONS:
         combine, identity = _REDUCTIONS[name]
         dtype = eqn.outvars[0].aval.dtype
-        return _reduce(x, p["axes"], combine, np.asarray(identity(dtype), dtype)[()])
+        return _reduce(x, p["axes"], combine, lambda: np.asarray(identity(dtype), dtype)[()])
     if name in ("pjit", "jit", "closed_call", "core_call", "remat", "remat2", "checkpoint"):
         cj = p.get("jaxpr") or p.get("call_jaxpr")
         if isinstance(cj, jex_core.ClosedJaxpr):

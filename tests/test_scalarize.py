@@ -123,8 +123,8 @@ def test_scalarize_reductions_over_an_empty_axis():
             jnp.all(e > 0),
             jnp.any(e > 0),
             jnp.sum(x.reshape(3, 1)[:, :0], axis=1),
-            jnp.max(x > 0),  # reduce_max of booleans (its identity is computed too)
-            jnp.min(e > 0, initial=True),
+            jnp.max(x > 0),  # reduce_max of booleans
+            jnp.min(e > 0, initial=True),  # over an empty boolean axis: its identity
         )
 
     x, n = jnp.array([1.5, -2.0, 0.5]), jnp.array([3, 1], jnp.int32)
