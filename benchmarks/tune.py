@@ -96,11 +96,14 @@ def figure(rows, batches, horizons, method_name, platform):
         combos = [(B, n) for B in batches for n in horizons]
         width = 0.8 / len(combos)
         for i, (B, n) in enumerate(combos):
-            vals = [
+            vals = [  # a variant not run at this size (a lease cut short) is left blank
                 next(
-                    r[key]
-                    for r in rows
-                    if r["variant"] == v and r["n_steps"] == n and r["batch"] == B
+                    (
+                        r[key]
+                        for r in rows
+                        if r["variant"] == v and r["n_steps"] == n and r["batch"] == B
+                    ),
+                    float("nan"),
                 )
                 for v in names
             ]

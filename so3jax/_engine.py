@@ -12,8 +12,9 @@ is, with no flag for the user to know:
   own contiguous ``(B,)`` array and a step is a few hundred small elementwise
   kernels (a structure-of-arrays layout); a smaller batch runs the array
   program, vmapped (faster there: `BATCHED_LAYOUT`). On a GPU the threshold is
-  4096 runs (`GPU_LAYOUT`): below it both layouts are latency bound there and the
-  array program compiles 5x faster. The switch is a
+  4096 runs (`GPU_LAYOUT`), for runs and their one-pass Jacobians alike: below it
+  both layouts are latency bound there and the array program compiles 2.5 to 5x
+  faster. The switch is a
   `jax.custom_batching.custom_vmap` rule, so nested ``vmap`` (gains x
   attitudes) and ``vmap`` inside ``jit`` take it. On CPU, from 64 runs on, the
   rule also hands the program an unbatched index
@@ -338,7 +339,15 @@ BATCHED_LAYOUT = {
 #: H100 and 1.02x / 1.10x on S31's H200, and compiled in 8.6 to 9.3 s against 1.4 to
 #: 2.2 s. From 4096 runs it pulls ahead: 1.27x at 4096 (float64, 750 steps, H200), 7.6x
 #: to 8.4x at 2^20. Cuts are CPU only (`so3jax._scalarize.cut_index`).
-GPU_LAYOUT = {"run": (4096, None)}
+#: ``"jacobian"`` (``grad`` / ``jacfwd`` through a few scalars): likewise scalarized from
+#: 4096 runs. At 256 seed runs (`expected_cost`, 1000 steps, float64, S41's H100,
+#: `benchmarks/layouts.py --check`) the scalarized program ran ``grad`` in 79.3 ms after
+#: 17.2 s of compile and ``jacfwd`` in 79.1 ms after 20.1 s, the array program 95.5 ms
+#: after 7.1 s and 95.4 ms after 6.5 s: a `tune` of 100 iterations (its default) takes
+#: 16 s instead of 28 s, and the scalarized program pays back only after some 630
+#: (``grad``) to 830 (``jacfwd``) calls in one process. At 4096 runs the scalarized
+#: program stays (``grad`` 94 ms, 1.8x the forward pass; the array one there unmeasured).
+GPU_LAYOUT = {"run": (4096, None), "jacobian": (4096, None)}
 
 #: `so3jax.sweep`'s runs per chunk when none is given, per device: ``"cpu"`` 1024 (a
 #: 2-core CPU is throughput bound from a few hundred runs; larger chunks only cost

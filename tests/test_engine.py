@@ -622,9 +622,10 @@ def test_dependence_walk():
 
 def test_gpu_layout_table(monkeypatch):
     """On a GPU `batched_layout` takes `GPU_LAYOUT`'s entries: a batch of 64 runs (scalarized
-    on the CPU) traces the array program there, 4096 runs the scalarized one, and the other
-    programs keep the CPU's table. (That both layouts give the same numbers is
-    `test_scalarize.py`'s.) Traces only: compiling them would cost the suite seconds."""
+    on the CPU) traces the array program there, 4096 runs the scalarized one; so does the
+    one-pass Jacobian of ``jacfwd``; the other programs keep the CPU's table. (That both
+    layouts give the same numbers is `test_scalarize.py`'s.) Traces only: compiling them
+    would cost the suite seconds."""
     sc = s.scenes.seed()
     R0s = s.random_rotation(jax.random.key(4), (64,))
     big = jnp.broadcast_to(R0s[0], (_engine.GPU_LAYOUT["run"][0], 3, 3))
@@ -637,20 +638,33 @@ def test_gpu_layout_table(monkeypatch):
     def size(*args):
         return len(str(jax.make_jaxpr(batch, static_argnums=1)(*args)))
 
+    def jacobian(R0s):
+        def cost(k):
+            sc_k = with_gains(sc, k[0], k[1])
+            return jax.vmap(lambda R0: s.simulate(sc_k, s.RKMK4(), DT, 4, 2, R0=R0).R)(R0s)
+
+        return jax.jacfwd(cost)(jnp.array([8.81, 2.54]))
+
     assert _engine.batched_layout("run") == _engine.BATCHED_LAYOUT["run"]
     assert _engine.BATCHED_LAYOUT["run"][0] <= 64  # scalarized on the CPU
+    assert _engine.BATCHED_LAYOUT["jacobian"][0] <= 64
+    cpu_64 = len(str(jax.make_jaxpr(jacobian)(R0s)))
     jax.clear_caches()  # batched jaxprs inside simulate may hold the CPU's layout
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     try:
         assert _engine.batched_layout("run") == _engine.GPU_LAYOUT["run"]
-        assert _engine.batched_layout("jacobian") == _engine.BATCHED_LAYOUT["jacobian"]
+        assert _engine.batched_layout("jacobian") == _engine.GPU_LAYOUT["jacobian"]
+        assert _engine.batched_layout("adjoint") == _engine.BATCHED_LAYOUT["adjoint"]
         small, array = size(R0s), size(R0s, False)
         assert abs(small - array) < 0.05 * array  # the array program
         assert size(big) > 1.1 * size(big, False)  # the scalarized program
+        # jacfwd in (k_R, k_Omega) of 64 runs: the Jacobian program, array layout
+        gpu_64 = len(str(jax.make_jaxpr(jacobian)(R0s)))
     finally:
         monkeypatch.undo()
         jax.clear_caches()
     assert _engine.batched_layout("run") == _engine.BATCHED_LAYOUT["run"]
+    assert cpu_64 > 1.2 * gpu_64  # the scalarized Jacobian program on the CPU only
 
 
 def test_sweep_program_default_per_platform(monkeypatch):
