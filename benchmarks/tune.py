@@ -17,8 +17,9 @@ engine (`so3jax._engine`):
 - forward mode (default, `jax.jacfwd`, 2 tangents): the same one-pass Jacobian;
 - forward mode, JAX's ``jvp`` of the checkpointed array program
   (``program="autodiff"``; the default before S19);
-- Hessian (default, `jax.hessian`: forward over reverse, 2 x 2): JAX's ``jvp`` of the
-  engine's one-pass Jacobian program, array layout (S40);
+- Hessian (default, `jax.hessian`: forward over reverse, 2 x 2): the ``jvp`` of the
+  engine's one-pass Jacobian program, scalarized from 32 runs (S41; the array layout
+  throughout in S40);
 - Hessian, JAX's autodiff of the checkpointed array program (``program="autodiff"``).
 
 For each: run time (min over repeats, compiled), compile time, and XLA's temp

@@ -40,6 +40,12 @@ is, with no flag for the user to know:
   ``program="autodiff"`` is JAX's own derivative of the checkpointed array
   program throughout (the reference).
 
+Second derivatives (``jax.hessian``, ``jvp`` of ``grad``, and higher) differentiate
+the programs the rules run: each is a `_dual`, whose own derivative is JAX's ``jvp``
+of the array program for one run and, under ``vmap``, the ``jvp`` of the program a batch
+runs (scalarized from 32 runs), behind a ``linear_call`` that JAX's transpose of the
+array program transposes (`_dual_jvp`).
+
 ``program="adjoint"`` runs the engine's tangent program in forward mode (a scan
 of ``jax.jvp`` of one step, scalarized for 32 runs or more; it carries tangents
 only for the leaves that can have one, `_tangent_masks`: with the gains
@@ -323,6 +329,7 @@ def checkpoint_length(n_steps: int) -> int:
 #: for 32, 48 / 37 / 39 for 64 and 116 / 101 / 50 for 128. The tangent and Jacobian
 #: programs need the cuts from 32 runs on (uncut they ran 2 to 3x slower than the array
 #: layout). ``"scalar"`` and ``"array"`` are ``program="scalar"`` and ``"array"`` (benchmarks).
+#: ``"jvp"``: the programs of second derivatives (`_dual_jvp`).
 BATCHED_LAYOUT = {
     "run": (32, 64),
     "scalar": (1, 64),
@@ -330,6 +337,7 @@ BATCHED_LAYOUT = {
     "jacobian": (32, 32),
     "adjoint": (None, None),
     "array": (None, None),
+    "jvp": (32, 32),
 }
 
 #: On a GPU, the entries that differ from `BATCHED_LAYOUT` (the others are the CPU's).
@@ -347,7 +355,10 @@ BATCHED_LAYOUT = {
 #: 16 s instead of 28 s, and the scalarized program pays back only after some 630
 #: (``grad``) to 830 (``jacfwd``) calls in one process. At 4096 runs the scalarized
 #: program stays (``grad`` 94 ms, 1.8x the forward pass; the array one there unmeasured).
-GPU_LAYOUT = {"run": (4096, None), "jacobian": (4096, None)}
+#: ``"jvp"`` (second derivatives, `_dual_jvp`) follows them, unmeasured: S41's H100 ran
+#: ``jax.hessian`` of that cost at 256 runs in 212 ms (3.6x the forward pass) before the
+#: scalarized ``"jvp"`` programs existed.
+GPU_LAYOUT = {"run": (4096, None), "jacobian": (4096, None), "jvp": (4096, None)}
 
 #: `so3jax.sweep`'s runs per chunk when none is given, per device: ``"cpu"`` 1024 (a
 #: 2-core CPU is throughput bound from a few hundred runs; larger chunks only cost
@@ -422,8 +433,9 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
     cost more than batching the first one). Tracers it closes over are constants
     of the jaxpr, closed over as before.
 
-    The call's derivative is JAX's own ``jvp`` of ``array_fn`` (a ``custom_jvp``),
-    for two reasons:
+    The call is a ``custom_jvp`` whose derivative JAX can differentiate, batch and
+    transpose again (`_dual_jvp`: JAX's ``jvp`` of ``array_fn``, or of the program
+    `_dual` would run under ``vmap`` behind a ``linear_call``), for two reasons:
 
     - **Second derivatives.** The engine's derivative rules run these programs on
       primals; ``jax.hessian`` (or ``jacfwd`` / ``jvp`` over ``grad``) then
@@ -431,8 +443,7 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
       inside another transform's ``vmap`` or partial evaluator returned tangents
       batched unlike their primals or unknown primals ("Custom JVP rule must
       produce primal and tangent outputs with corresponding shapes",
-      "Linearization failed to produce known values"); JAX's ``jvp`` of the
-      plain array program composes with every transform (S40).
+      "Linearization failed to produce known values") (S40).
     - **Bound whole under ``grad``.** When ``grad`` linearizes the engine's
       ``custom_jvp`` rule, JAX runs that rule under its partial evaluator, whose
       ``scan`` and ``cond`` rules partially evaluate a loop even when all its
@@ -449,8 +460,90 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str) -> Callable:
         closed, shape = jax.make_jaxpr(array_fn, return_shape=True)(*args)
         return _dual_of(_Traced(closed, jax.tree.structure(shape)), scalar_fn, what)(*args)
 
-    call.defjvp(functools.partial(_array_jvp, array_fn), symbolic_zeros=True)
+    call.defjvp(functools.partial(_dual_jvp, array_fn, scalar_fn, what), symbolic_zeros=True)
     return call
+
+
+def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, primals, tangents):
+    """`_dual`'s derivative (second derivatives of a run: its rule's programs differentiated).
+
+    For the forward, tangent and Jacobian programs, the value is the array program's
+    (batched as `_dual` batches it) and the tangent a ``linear_call``
+    (`_linear_tangent`) whose program is the ``jvp`` of the program `_dual` would run,
+    itself a `_dual` (``"jvp"``): scalarized under a ``vmap`` of 32 runs or more
+    (`BATCHED_LAYOUT`). ``jax.hessian`` of the mean cost over 256 seed starts took
+    0.69 s that way against 5.3 s through the array program (2-core CPU, S41). Integer
+    outputs (a run's status) get their ``float0`` zeros outside the ``linear_call``.
+    The value computed by ``call`` itself instead broke third derivatives with a
+    ``vmap`` inside ("got axis spec None but output was batched"). The other programs,
+    and the ``"jvp"`` programs themselves (third derivatives): JAX's ``jvp`` of the
+    array program (`_array_jvp`).
+
+    S40 reverted this design: ``jacfwd`` of ``jacfwd`` of one run failed. The cause was
+    the ``linear_call`` batching rule, which JAX calls under every ``vmap`` in scope, the
+    inner ``jacfwd``'s basis too, and which batched every output even with nothing
+    batched; JAX then batched this rule's value with its tangent (S41: the rule now
+    leaves such a call unbatched).
+    """
+    if what not in ("run", "tangent", "jacobian") or not _HAVE_LINEAR_CALL_BATCHING:
+        return _array_jvp(array_fn, primals, tangents)
+    leaves, treedef = jax.tree.flatten(primals)
+    t_leaves = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
+    nz = [not isinstance(t, SymbolicZero) for t in t_leaves]
+
+    out = _front(_batched_with(array_fn(*primals), primals))
+    # Integer and boolean outputs (a run's status) have float0 tangents, outside the
+    # linear_call.
+    out_nz = [jnp.issubdtype(jnp.result_type(o), jnp.inexact) for o in jax.tree.leaves(out)]
+
+    def tangent_of(fn):
+        def tangent(xs, ts, others, **kw):
+            if kw.get("batched") is not None:  # flags of (xs, ts, others): fn's args'
+                xb, _, ob = kw["batched"]
+                kw["batched"] = tuple(jax.tree.unflatten(treedef, _fill(nz, xb, ob)))
+
+            def g(*xs):
+                return fn(*jax.tree.unflatten(treedef, _fill(nz, xs, others)), **kw)
+
+            return _pick(out_nz, jax.tree.leaves(jax.jvp(g, tuple(xs), tuple(ts))[1]))
+
+        return tangent
+
+    plain = tangent_of(array_fn)
+    fast = _dual(plain, tangent_of(scalar_fn), "jvp")
+    xs, ts = _pick(nz, leaves), _pick(nz, t_leaves)
+    zeros = [np.zeros(jnp.shape(o), jax.dtypes.float0) for o in jax.tree.leaves(out)]
+    tan = _fill(out_nz, _linear_tangent(plain, fast, xs, leaves, ts), zeros)
+    return out, jax.tree.unflatten(jax.tree.structure(out), tan)
+
+
+def _linear_tangent(plain: Callable, fast: Callable, xs, others, ts):
+    """``fast(xs, ts, others)``, linear in ``ts``, transposable and differentiable.
+
+    ``fast`` (a `_dual`: a ``custom_vmap`` that JAX can neither partially evaluate nor
+    transpose) runs as the program of a ``linear_call``, whose transpose is JAX's
+    transpose of ``plain`` (the same map on the array program): ``grad`` of ``grad``.
+    Behind a ``custom_jvp`` whose rule is JAX's ``jvp`` of ``plain``, because a
+    ``linear_call`` cannot differentiate its residuals: third derivatives.
+    """
+    shapes = [jax.ShapeDtypeStruct(jnp.shape(t), jnp.result_type(t)) for t in ts]
+
+    def callee(res, ts):
+        return fast(res[0], ts, res[1])
+
+    def transpose(res, cts):
+        zeros = [jnp.zeros(s.shape, s.dtype) for s in shapes]
+        return jax.vjp(lambda ts: plain(res[0], ts, res[1]), zeros)[1](cts)[0]
+
+    @jax.custom_jvp
+    def tangent(xs, others, ts):
+        return linear_call(callee, transpose, (xs, others), ts)
+
+    def tangent_jvp(primals, tangents):
+        return _array_jvp(lambda xs, others, ts: plain(xs, ts, others), primals, tangents)
+
+    tangent.defjvp(tangent_jvp, symbolic_zeros=True)
+    return tangent(xs, others, ts)
 
 
 def _array_jvp(array_fn: Callable, primals, tangents):
@@ -586,7 +679,7 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str) -> Callable:
         try:
             cuts = cut_from is not None and axis_size >= cut_from
             index = sc.cut_index(args) if cuts else None
-            if what in ("run", "scalar", "tangent", "jacobian") and index is not None:
+            if what in ("run", "scalar", "tangent", "jacobian", "jvp") and index is not None:
                 # The forward, tangent and Jacobian loops settle their carry's batching up
                 # front (`sc.settle_batched`); the adjoint's backward scan does not.
                 def cut(one, *a):
@@ -953,6 +1046,19 @@ def _register_linear_call_batching() -> bool:
         return core.ClosedJaxpr(jaxpr, ()), list(closed.consts)
 
     def rule(axis_data, args, dims, *, callee, transpose_thunk, num_callee_consts, num_res):
+        if all(d is None for d in dims):
+            # JAX calls a fancy batching rule even when no argument is batched (a vmap the
+            # call does not depend on: jacfwd's basis over a run's second derivative).
+            # Batching every output there broadcast them over that vmap, and JAX then
+            # batched the value of the custom_jvp around it: "got axis spec None but
+            # output was batched" under jacfwd of jacfwd.
+            params = dict(
+                callee=callee,
+                transpose_thunk=transpose_thunk,
+                num_callee_consts=num_callee_consts,
+                num_res=num_res,
+            )
+            return p.bind(*args, **params), [None] * len(callee.out_avals)
         size = axis_data.size
         n_pre = num_callee_consts + num_res
         pre = [

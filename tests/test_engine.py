@@ -319,7 +319,7 @@ def _toy_second(P, program, jit):
 
 
 @pytest.mark.parametrize("n", [2, 10])
-def test_second_derivatives_equal_autodiff(n):
+def test_second_derivatives_equal_autodiff(n, monkeypatch):
     """``jax.hessian`` and the other second (and third) derivatives of runs, jitted or
     not, single or batched (3 runs: the array layout; 40: scalarized), equal JAX's
     autodiff of the checkpointed array program. The engine's rules run their programs
@@ -327,9 +327,20 @@ def test_second_derivatives_equal_autodiff(n):
     produce primal and tangent outputs with corresponding shapes", "Linearization
     failed to produce known values", and "Cannot concatenate" under a jitted batch).
     ``jacfwd`` of ``jacfwd`` and ``jvp`` of ``jacfwd`` of a jitted run broke a faster
-    variant for large batches (benchmarks/README.md, "Second derivatives (S40)")."""
+    variant for large batches (benchmarks/README.md, "Second derivatives (S40)"): JAX
+    called the ``linear_call`` batching rule under a ``vmap`` nothing in the call
+    depended on, which batched every output (S41). Through few scalars a batch of 40
+    differentiates its one-pass Jacobian program scalarized (`_engine._dual_jvp`)."""
     p = jnp.linspace(1.3, 0.7, n)
     u = jnp.linspace(-1.0, 1.0, n)
+    scalarized = []
+    jac_scalar = _engine._Loop.jac_scalar
+
+    def spy(self, *args, **kwargs):
+        scalarized.append(1)
+        return jac_scalar(self, *args, **kwargs)
+
+    monkeypatch.setattr(_engine._Loop, "jac_scalar", spy)
 
     def mean(program, jit, ps):
         one = lambda q: _toy_second(q, program, jit)  # noqa: E731
@@ -347,6 +358,8 @@ def test_second_derivatives_equal_autodiff(n):
         out = {"hessian(mean jitted vmap 40)": J(jax.hessian(big))(jnp.ones(n))}
         if n > _engine.FORWARD_JACOBIAN_MAX:
             return out  # JAX's own jvp there: one case guards the composition
+        if program == "auto":
+            assert len(scalarized) == 2, scalarized  # the gradient's and the Hessian's
         return out | {
             "jacrev(jacrev(mean jitted vmap 40))": J(jax.jacrev(jax.jacrev(big)))(jnp.ones(n)),
             "hessian": J(jax.hessian(f))(p),
@@ -366,6 +379,18 @@ def test_second_derivatives_equal_autodiff(n):
     for name in ref:
         assert np.abs(ref[name]).max() > 0, name
         assert _rel(got[name], ref[name]) < 1e-12, name
+
+
+def test_linear_call_under_a_vmap_it_does_not_depend_on():
+    """JAX calls `_register_linear_call_batching`'s rule under every ``vmap`` in scope,
+    also one no argument of the call is batched over; the rule must then leave the
+    outputs unbatched (it batched them all before S41, so ``out_axes=None`` raised)."""
+    p = jnp.linspace(1.3, 0.7, 2)
+    g = jax.grad(lambda q: _toy_second(q, "adjoint", False))
+    ref = g(p)
+    assert np.abs(ref).min() > 0
+    got = jax.vmap(lambda _: g(p), out_axes=None)(jnp.arange(3))
+    assert _rel(got, ref) < 1e-14
 
 
 def test_adjoint_program_second_derivatives_raise_clearly():
