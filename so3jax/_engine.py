@@ -43,8 +43,8 @@ is, with no flag for the user to know:
 Second derivatives (``jax.hessian``, ``jvp`` of ``grad``, and higher) differentiate
 the programs the rules run: each is a `_dual`, whose own derivative is JAX's ``jvp``
 of the array program for one run and, under ``vmap``, the ``jvp`` of the program a batch
-runs (scalarized from 32 runs), behind a ``linear_call`` that JAX's transpose of the
-array program transposes (`_dual_jvp`).
+runs (scalarized from 32 runs on a CPU: ``BATCHED_LAYOUT["jvp"]``), behind a
+``linear_call`` that JAX's transpose of the array program transposes (`_dual_jvp`).
 
 ``program="adjoint"`` runs the engine's tangent program in forward mode (a scan
 of ``jax.jvp`` of one step, scalarized for 32 runs or more; it carries tangents
@@ -472,7 +472,7 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, primals, tange
     (`_linear_tangent`) whose program is the ``jvp`` of the program `_dual` would run,
     itself a `_dual` (``"jvp"``): scalarized under a ``vmap`` of 32 runs or more
     (`BATCHED_LAYOUT`). ``jax.hessian`` of the mean cost over 256 seed starts took
-    0.69 s that way against 5.3 s through the array program (2-core CPU, S41). Integer
+    0.68 s that way against 4.8 s through the array program (2-core CPU, S41). Integer
     outputs (a run's status) get their ``float0`` zeros outside the ``linear_call``.
     The value computed by ``call`` itself instead broke third derivatives with a
     ``vmap`` inside ("got axis spec None but output was batched"). The other programs,

@@ -679,6 +679,7 @@ def test_gpu_layout_table(monkeypatch):
     try:
         assert _engine.batched_layout("run") == _engine.GPU_LAYOUT["run"]
         assert _engine.batched_layout("jacobian") == _engine.GPU_LAYOUT["jacobian"]
+        assert _engine.batched_layout("jvp") == _engine.GPU_LAYOUT["jvp"]
         assert _engine.batched_layout("adjoint") == _engine.BATCHED_LAYOUT["adjoint"]
         small, array = size(R0s), size(R0s, False)
         assert abs(small - array) < 0.05 * array  # the array program
