@@ -26,7 +26,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.custom_derivatives import SymbolicZero, linear_call
+from jax.custom_derivatives import linear_call
 
 from . import _engine
 from ._integrators import AbstractLieSolver
@@ -214,11 +214,8 @@ def _differentiable(static, max_steps: int):
     def f_jvp(primals, tangents):
         (dyn,), (tdyn,) = primals, tangents
         leaves, treedef = jax.tree.flatten(dyn)
-        t_leaves = jax.tree.leaves(tdyn, is_leaf=lambda t: isinstance(t, SymbolicZero))
-        nz = [
-            not isinstance(t, SymbolicZero) and _engine._is_float(x)
-            for x, t in zip(leaves, t_leaves, strict=True)
-        ]
+        t_leaves, nonzero = _engine._tangent_leaves(tdyn)
+        nz = [z and _engine._is_float(x) for x, z in zip(leaves, nonzero, strict=True)]
         xs, ts = _engine._pick(nz, leaves), _engine._pick(nz, t_leaves)
 
         def at(adjoint, leaves, xs):  # the run with the nonzero inputs set to xs

@@ -132,6 +132,13 @@ def _pick(mask, xs) -> list:
     return [x for m, x in zip(mask, xs, strict=True) if m]
 
 
+def _tangent_leaves(tangents) -> tuple[list, list]:
+    """A ``custom_jvp`` rule's tangents (``symbolic_zeros=True``) as leaves, and per leaf
+    whether it is nonzero (not a `SymbolicZero`)."""
+    t_leaves = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
+    return t_leaves, [not isinstance(t, SymbolicZero) for t in t_leaves]
+
+
 def _masked_tangents(nz, xs, mP, mc, pf, cf, lead=()) -> tuple[list, list]:
     """The tangents a masked tangent program takes: ``(dP, dc)``.
 
@@ -488,8 +495,7 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, primals, tange
     if what not in ("run", "tangent", "jacobian") or not _HAVE_LINEAR_CALL_BATCHING:
         return _array_jvp(array_fn, primals, tangents)
     leaves, treedef = jax.tree.flatten(primals)
-    t_leaves = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
-    nz = [not isinstance(t, SymbolicZero) for t in t_leaves]
+    t_leaves, nz = _tangent_leaves(tangents)
 
     out = _front(_batched_with(array_fn(*primals), primals))
     # Integer and boolean outputs (a run's status) have float0 tangents, outside the
@@ -512,7 +518,10 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, primals, tange
     plain = tangent_of(array_fn)
     fast = _dual(plain, tangent_of(scalar_fn), "jvp")
     xs, ts = _pick(nz, leaves), _pick(nz, t_leaves)
-    zeros = [np.zeros(jnp.shape(o), jax.dtypes.float0) for o in jax.tree.leaves(out)]
+    zeros = [
+        None if k else np.zeros(jnp.shape(o), jax.dtypes.float0)
+        for o, k in zip(jax.tree.leaves(out), out_nz, strict=True)
+    ]
     tan = _fill(out_nz, _linear_tangent(plain, fast, xs, leaves, ts), zeros)
     return out, jax.tree.unflatten(jax.tree.structure(out), tan)
 
@@ -560,8 +569,7 @@ def _array_jvp(array_fn: Callable, primals, tangents):
     being concatenated" (S40).
     """
     leaves, treedef = jax.tree.flatten(primals)
-    t_leaves = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
-    nz = [not isinstance(t, SymbolicZero) for t in t_leaves]
+    t_leaves, nz = _tangent_leaves(tangents)
     out, tan = _jvp_through(array_fn, treedef, leaves, t_leaves, nz)
     return _front(_batched_with(out, primals)), tan
 
@@ -1193,8 +1201,7 @@ def _checkpointed_jvp(loop: _Loop, primals, tangents):
     is pruned.
     """
     p_leaves, treedef = jax.tree.flatten(primals)
-    t_leaves = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
-    nz = [not isinstance(t, SymbolicZero) for t in t_leaves]
+    t_leaves, nz = _tangent_leaves(tangents)
     t_leaves, nz = _settle_carry_tangents(loop, primals, p_leaves, t_leaves, nz)
     out, tan = _jvp_through(loop.fwd_checkpointed, treedef, p_leaves, t_leaves, nz)
     return _batched_with(out, primals), tan  # batched as the run's forward programs are
