@@ -381,6 +381,40 @@ def test_second_derivatives_equal_autodiff(n, monkeypatch):
         assert _rel(got[name], ref[name]) < 1e-12, name
 
 
+def test_second_derivatives_differentiate_each_loop_once(monkeypatch):
+    """``jax.hessian`` over a scalarized batch (40 runs) differentiates the one-pass
+    Jacobian program, whose carry tangents start as symbolic zeros: JAX's fixed point
+    differentiated the loop of saved points twice, and the step loop inside it on each
+    pass, in the array and the scalarized program alike. `_dual_jvp` starts them with
+    zeros (`_engine._settle_jacobian_tangents`): each loop once. Same Hessian."""
+    from jax._src.interpreters import ad
+    from jax.extend.core.primitives import scan_p
+
+    calls, rule = [], ad.primitive_jvps[scan_p]
+
+    def spy(*args, **kwargs):
+        calls.append(1)
+        return rule(*args, **kwargs)
+
+    monkeypatch.setitem(ad.primitive_jvps, scan_p, spy)
+    ps = jnp.linspace(1.3, 0.7, 2) * jnp.linspace(0.8, 1.2, 40)[:, None]
+
+    def mean(program):
+        return lambda k: jnp.mean(jax.vmap(lambda q: _toy_second(q * k, program, True))(ps))
+
+    ref = jax.hessian(mean("autodiff"))(jnp.ones(2))
+    counts = {}
+    for settle in (True, False):
+        if not settle:
+            monkeypatch.setattr(_engine, "_settle_jacobian_tangents", lambda *a: (a[-2], a[-1]))
+        calls.clear()
+        H = jax.hessian(mean("auto"))(jnp.ones(2))
+        counts[settle] = len(calls)
+        assert _rel(H, ref) < 1e-12
+    # Two programs (array, scalarized), each two nested loops differentiated once.
+    assert counts[True] == 4 and counts[False] > 4, counts
+
+
 def test_linear_call_under_a_vmap_it_does_not_depend_on():
     """JAX calls `_register_linear_call_batching`'s rule under every ``vmap`` in scope,
     also one no argument of the call is batched over; the rule must then leave the
