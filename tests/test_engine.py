@@ -359,8 +359,16 @@ def test_second_derivatives_equal_autodiff(n, monkeypatch):
         if n > _engine.FORWARD_JACOBIAN_MAX:
             return out  # JAX's own jvp there: one case guards the composition
         if program == "auto":
-            assert len(scalarized) == 2, scalarized  # the gradient's and the Hessian's
+            # The gradient's (the `custom_jvp` function, which JAX batches too), and in the
+            # Hessian's rule (`_dual_jvp`) its value's and its tangent's.
+            assert len(scalarized) == 3, scalarized
         return out | {
+            # The value of `_dual_jvp` (the gradient beside its jvp) and third derivatives
+            # through it, scalarized.
+            "jvp(grad(mean jitted vmap 40)), value and tangent": jnp.stack(
+                J(lambda k: jax.jvp(jax.grad(big), (k,), (u,)))(jnp.ones(n))
+            ),
+            "jacfwd(hessian(mean jitted vmap 40))": J(jax.jacfwd(jax.hessian(big)))(jnp.ones(n)),
             "jacrev(jacrev(mean jitted vmap 40))": J(jax.jacrev(jax.jacrev(big)))(jnp.ones(n)),
             "hessian": J(jax.hessian(f))(p),
             "jacrev(jacrev)": J(jax.jacrev(jax.jacrev(f)))(p),
