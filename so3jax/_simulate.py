@@ -61,10 +61,12 @@ def simulate(
     - `t0`: initial time.
     - `scalarize`: leave it at ``None``: the execution engine
       (`so3jax._engine`) runs a single trajectory as the array program and a
-      batch under ``vmap`` as the scalarized program (every scalar component a
-      contiguous batch array, one fused kernel per step: on CPU about 4x the
-      array program's throughput at 2048 trajectories), and differentiates the
-      checkpointed array program. ``True`` / ``False`` force the scalarized /
+      batch under ``vmap`` of 32 runs or more (4096 on a GPU) as the scalarized
+      program (every scalar component a contiguous batch array, a few fused
+      kernels per step: on CPU about 4x the array program's throughput at 2048
+      trajectories). Through up to 8 differentiated scalars it differentiates a
+      run in one pass with its Jacobian's columns; through more, with JAX's
+      ``jvp`` of the checkpointed array program. ``True`` / ``False`` force the scalarized /
       array forward program whatever the batching (for benchmarks); a step with
       an operation the scalarizer does not handle (a loop, dynamic indexing)
       runs the array program. Fixed steps only.
