@@ -44,7 +44,8 @@ Second derivatives (``jax.hessian``, ``jvp`` of ``grad``, and higher) differenti
 the programs the rules run: each is a `_dual`, whose own derivative is JAX's ``jvp``
 of the array program for one run and, under ``vmap``, the ``jvp`` of the program a batch
 runs (scalarized from 32 runs on a CPU: ``BATCHED_LAYOUT["jvp"]``), behind a
-``linear_call`` that JAX's transpose of the array program transposes (`_dual_jvp`).
+``linear_call`` that JAX's transpose of the array program transposes, and the value
+beside it is the `_dual` itself (`_dual_jvp`).
 
 ``program="adjoint"`` runs the engine's tangent program in forward mode (a scan
 of ``jax.jvp`` of one step, scalarized for 32 runs or more; it carries tangents
@@ -487,7 +488,7 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     zeros outside the ``linear_call``. Until S42 the value was the array program's
     (a `_dual` had broken third derivatives with a ``vmap`` inside, before S41's
     ``linear_call`` fix below), so ``jax.jvp`` of ``grad`` over 256 seed starts, the
-    gradient beside its Hessian-vector product, took 1.96 s against 0.69 s now. The
+    gradient beside its Hessian-vector product, took 1.95 s against 0.72 s now. The
     other programs, and the ``"jvp"`` programs themselves (third derivatives): JAX's
     ``jvp`` of the array program (`_array_jvp`).
 
@@ -501,7 +502,8 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     program's `_settle_jacobian_tangents`) starts the loop's carry tangents that a step
     makes nonzero with zeros, so that JAX differentiates and batches each loop of the
     ``jvp`` programs once: ``jax.hessian`` of the mean cost over 256 seed starts lowered
-    in 7.4 to 7.7 s against 9.1 to 9.4 s (S42; the same programs, run and compile times).
+    in 8.1 s against 9.3 s (S42, the value's `_dual` included; run and compile times as
+    before).
     """
     if what not in ("run", "tangent", "jacobian") or not _HAVE_LINEAR_CALL_BATCHING:
         return _array_jvp(array_fn, primals, tangents)
