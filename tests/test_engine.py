@@ -423,6 +423,36 @@ def test_second_derivatives_differentiate_each_loop_once(monkeypatch):
     assert counts[True] == 4 and counts[False] > 4, counts
 
 
+def test_reverse_over_reverse_transposes_by_columns(monkeypatch):
+    """``jacrev`` of ``jacrev`` transposes the second derivative's ``linear_call``
+    (`_engine._linear_tangent`). Through at most 8 scalars its transpose runs the
+    fast program once per unit tangent (`_transpose_by_columns`: scalarized over a batch
+    of 40 here), through more JAX's transpose of the array program (10 scalars: a
+    gradient through 2 of them, differentiated through all). Both equal autodiff."""
+    used, by_columns = [], _engine._transpose_by_columns
+    monkeypatch.setattr(
+        _engine, "_transpose_by_columns", lambda *a: used.append(1) or by_columns(*a)
+    )
+    ps = jnp.linspace(0.8, 1.2, 40)[:, None]
+
+    def mean(program, P):
+        return jnp.mean(jax.vmap(lambda s: _toy_second(P * s, program, True))(ps))
+
+    p2 = jnp.array([1.3, 0.7])
+    ref = jax.jacrev(jax.jacrev(lambda P: mean("autodiff", P)))(p2)
+    got = jax.jacrev(jax.jacrev(lambda P: mean("auto", P)))(p2)
+    assert used and _rel(got, ref) < 1e-12
+    used.clear()
+
+    def grad_of_two(program):
+        return lambda P: jax.grad(lambda a: mean(program, jnp.concatenate([a, P[2:]])))(P[:2])
+
+    p10 = jnp.linspace(1.3, 0.7, 10)
+    ref = jax.jacrev(grad_of_two("autodiff"))(p10)
+    got = jax.jacrev(grad_of_two("auto"))(p10)
+    assert not used and np.abs(ref[:, 2:]).max() > 0 and _rel(got, ref) < 1e-12
+
+
 def test_linear_call_under_a_vmap_it_does_not_depend_on():
     """JAX calls `_register_linear_call_batching`'s rule under every ``vmap`` in scope,
     also one no argument of the call is batched over; the rule must then leave the
