@@ -227,7 +227,13 @@ def _differentiable(static, max_steps: int):
             return out, _engine._tangent_tree(out, zeros)
         n = sum(math.prod(jnp.shape(x)) for x in xs)
         if n <= _engine.FORWARD_JACOBIAN_MAX:
-            out, J = _jacobian(lambda *xs: at(diffrax.ForwardMode(), leaves, xs), xs)
+            # Differentiated again (second derivatives), the Jacobian program is JAX's
+            # jvp of a while loop: forward mode only, so its reverse mode runs by columns.
+            jac = _engine.forward_differentiated(
+                lambda xs, others: _jacobian(lambda *x: at(diffrax.ForwardMode(), others, x), xs)
+            )
+            others = _engine._fill(nz, [jnp.zeros_like(x) for x in xs], leaves)
+            out, J = jac(list(xs), others)
             coef = jnp.concatenate([jnp.ravel(t) for t in ts])
             dout = [jnp.tensordot(coef.astype(Jk.dtype), Jk, axes=1) for Jk in J]
             return out, _engine._tangent_tree(out, dout)

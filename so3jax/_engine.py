@@ -543,7 +543,7 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     return out, jax.tree.unflatten(jax.tree.structure(out), tan)
 
 
-def _linear_tangent(plain: Callable, fast: Callable, xs, others, ts, real: list):
+def _linear_tangent(plain: Callable, fast: Callable, xs, others, ts, real: list, max_columns=None):
     """``fast(xs, ts, others)``, linear in ``ts``, transposable and differentiable.
 
     ``fast`` (a `_dual`: a ``custom_vmap`` that JAX can neither partially evaluate nor
@@ -553,16 +553,19 @@ def _linear_tangent(plain: Callable, fast: Callable, xs, others, ts, real: list)
     tangent, contracted with the cotangent (`_transpose_by_columns`); through more,
     JAX's transpose of ``plain`` (the same map on the array program). Behind a
     ``custom_jvp`` whose rule is JAX's ``jvp`` of ``plain``, because a ``linear_call``
-    cannot differentiate its residuals: third derivatives.
+    cannot differentiate its residuals: third derivatives. ``max_columns``: the
+    largest number of columns (default `FORWARD_JACOBIAN_MAX`); `forward_differentiated`
+    takes columns whatever their number.
     """
     shapes = [jax.ShapeDtypeStruct(jnp.shape(t), jnp.result_type(t)) for t in ts]
     n_real = sum(math.prod(s.shape) for s, r in zip(shapes, real, strict=True) if r)
+    max_columns = FORWARD_JACOBIAN_MAX if max_columns is None else max_columns
 
     def callee(res, ts):
         return fast(res[0], ts, res[1])
 
     def transpose(res, cts):
-        if 0 < n_real <= FORWARD_JACOBIAN_MAX:
+        if 0 < n_real <= max_columns:
             return _transpose_by_columns(lambda ts: callee(res, ts), cts, shapes, real)
         zeros = [jnp.zeros(s.shape, s.dtype) for s in shapes]
         return jax.vjp(lambda ts: plain(res[0], ts, res[1]), zeros)[1](cts)[0]
@@ -576,6 +579,49 @@ def _linear_tangent(plain: Callable, fast: Callable, xs, others, ts, real: list)
 
     tangent.defjvp(tangent_jvp, symbolic_zeros=True)
     return tangent(xs, others, ts)
+
+
+def forward_differentiated(fn: Callable) -> Callable:
+    """``fn`` with JAX's ``jvp`` of it as its derivative, behind a ``linear_call`` whose
+    transpose runs that ``jvp`` once per unit tangent (`_transpose_by_columns`).
+
+    For programs JAX differentiates in forward mode only (a ``while_loop``: an adaptive
+    run through `diffrax.ForwardMode`, whose one-pass Jacobian is such a program): reverse
+    mode over their derivatives (``jacrev`` of ``jacfwd``, ``grad`` of a gradient's norm)
+    then works, instead of raising JAX's "Reverse-mode differentiation does not work for
+    lax.while_loop". Integer outputs get ``float0`` tangents.
+    """
+
+    @jax.custom_jvp
+    def call(*args):
+        return fn(*args)
+
+    def rule(primals, tangents):
+        leaves, treedef = jax.tree.flatten(primals)
+        t_leaves, nonzero = _tangent_leaves(tangents)
+        nz = [z and _is_float(x) for x, z in zip(leaves, nonzero, strict=True)]
+        out = call(*primals)
+        out_leaves = jax.tree.leaves(out)
+        out_nz = [jnp.issubdtype(jnp.result_type(o), jnp.inexact) for o in out_leaves]
+
+        def plain(xs, ts, others):
+            def g(*xs):
+                return _pick(
+                    out_nz, jax.tree.leaves(fn(*jax.tree.unflatten(treedef, _fill(nz, xs, others))))
+                )
+
+            return jax.jvp(g, tuple(xs), tuple(ts))[1]
+
+        xs, ts = _pick(nz, leaves), _pick(nz, t_leaves)
+        tan = _linear_tangent(plain, plain, xs, leaves, ts, [True] * len(ts), math.inf)
+        zeros = [
+            None if k else np.zeros(jnp.shape(o), jax.dtypes.float0)
+            for o, k in zip(out_leaves, out_nz, strict=True)
+        ]
+        return out, jax.tree.unflatten(jax.tree.structure(out), _fill(out_nz, tan, zeros))
+
+    call.defjvp(rule, symbolic_zeros=True)
+    return call
 
 
 def _transpose_by_columns(linear: Callable, cts, shapes: list, real: list) -> list:

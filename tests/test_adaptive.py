@@ -336,10 +336,13 @@ def test_default_derivatives_agree_in_every_mode(free):
 
 def test_second_derivatives(free):
     """``jax.hessian`` through the 3 start rates (the one-pass Jacobian, forward over
-    forward) equals ``jacfwd`` of ``jacfwd`` through `diffrax.ForwardMode`;
-    through all 30 floats the default derivatives (a ``linear_call``) have first
-    derivatives only, and a second one says which adjoint to pass (it failed with a
-    bare ``AssertionError``)."""
+    forward) equals ``jacfwd`` of ``jacfwd`` through `diffrax.ForwardMode`, and so does
+    reverse over forward (``jacrev`` of ``jacfwd``: the Jacobian program is a while loop,
+    which JAX differentiates forward only, so its transpose runs by columns,
+    `_engine.forward_differentiated`; it raised JAX's "Reverse-mode differentiation does
+    not work for lax.while_loop" before S42); through all 30 floats the default
+    derivatives (a ``linear_call``) have first derivatives only, and a second one says
+    which adjoint to pass (it failed with a bare ``AssertionError``)."""
 
     def rates(w, adjoint=None):
         sc = eqx.tree_at(lambda sc: sc.y0.x, free, w)
@@ -351,6 +354,8 @@ def test_second_derivatives(free):
     ref = jax.jit(jax.jacfwd(jax.jacfwd(lambda w: rates(w, diffrax.ForwardMode()))))(w)
     assert np.abs(np.asarray(ref) - np.asarray(ref).T).max() < 1e-10 * np.abs(ref).max()
     np.testing.assert_allclose(H, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
+    H_rf = jax.jit(jax.jacrev(jax.jacfwd(rates)))(w)
+    np.testing.assert_allclose(H_rf, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
     with pytest.raises(NotImplementedError, match="DirectAdjoint"):
         jax.hessian(lambda sc: _free_cost(sc).sum())(free)
 
