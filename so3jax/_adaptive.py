@@ -15,7 +15,10 @@ transposes for ``grad``. Through more scalars, forward mode is the same ``jvp``
 and reverse mode `diffrax.RecursiveCheckpointAdjoint`'s backward pass, joined by
 ``jax.custom_derivatives.linear_call``. Both are derivatives of the same
 discretised run (diffrax holds the step sizes constant to autodiff), equal to
-round-off.
+round-off. Second derivatives through a few scalars differentiate the one-pass
+Jacobian again; it is a while loop, which JAX differentiates in forward mode only, so
+reverse mode over it (``jacrev`` of ``jacfwd``, ``grad`` of a gradient's norm) transposes
+its ``jvp`` by columns (`so3jax._engine.forward_differentiated`).
 """
 
 from __future__ import annotations
