@@ -509,38 +509,50 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     if what not in ("run", "tangent", "jacobian") or not _HAVE_LINEAR_CALL_BATCHING:
         return _array_jvp(array_fn, primals, tangents)
     leaves, treedef = jax.tree.flatten(primals)
-    t_leaves, nz = _tangent_leaves(tangents)
-    if settle is not None:
-        t_leaves, nz = settle(primals, leaves, t_leaves, nz)
+    t_leaves, real = _tangent_leaves(tangents)
+    t_leaves, nz = (t_leaves, real) if settle is None else settle(primals, leaves, t_leaves, real)
 
     out = _front(_batched_with(_dual(array_fn, scalar_fn, what, settle)(*primals), primals))
     # Integer and boolean outputs (a run's status) have float0 tangents, outside the
     # linear_call.
-    out_nz = [jnp.issubdtype(jnp.result_type(o), jnp.inexact) for o in jax.tree.leaves(out)]
-
-    def tangent_of(fn):
-        def tangent(xs, ts, others, **kw):
-            if kw.get("batched") is not None:  # flags of (xs, ts, others): fn's args'
-                xb, _, ob = kw["batched"]
-                kw["batched"] = tuple(jax.tree.unflatten(treedef, _fill(nz, xb, ob)))
-
-            def g(*xs):
-                return fn(*jax.tree.unflatten(treedef, _fill(nz, xs, others)), **kw)
-
-            return _pick(out_nz, jax.tree.leaves(jax.jvp(g, tuple(xs), tuple(ts))[1]))
-
-        return tangent
-
-    plain = tangent_of(array_fn)
-    fast = _dual(plain, tangent_of(scalar_fn), "jvp")
+    out_nz = [_is_float(o) for o in jax.tree.leaves(out)]
+    plain = _float_tangent(array_fn, treedef, nz, out_nz)
+    fast = _dual(plain, _float_tangent(scalar_fn, treedef, nz, out_nz), "jvp")
     xs, ts = _pick(nz, leaves), _pick(nz, t_leaves)
-    real = _pick(nz, _tangent_leaves(tangents)[1])  # the others are settled zeros
+    # The tangents the settle added are zeros (not real ones): `_linear_tangent`'s transpose.
+    tan = _linear_tangent(plain, fast, xs, leaves, ts, _pick(nz, real))
+    return out, _with_float0(out, out_nz, tan)
+
+
+def _float_tangent(fn: Callable, treedef, nz: list, out_nz: list) -> Callable:
+    """``tangent(xs, ts, others, **kw)``: JAX's ``jvp`` of ``fn`` at the leaves
+    ``others`` (``treedef``'s) with those flagged in ``nz`` set to ``xs`` and moved by
+    ``ts``; the tangents of its outputs flagged in ``out_nz`` (the float ones). A
+    ``batched`` keyword (a `custom_vmap` rule's flags of ``(xs, ts, others)``) reaches
+    ``fn`` as its own arguments' flags."""
+
+    def tangent(xs, ts, others, **kw):
+        if kw.get("batched") is not None:
+            xb, _, ob = kw["batched"]
+            kw["batched"] = tuple(jax.tree.unflatten(treedef, _fill(nz, xb, ob)))
+
+        def g(*xs):
+            return fn(*jax.tree.unflatten(treedef, _fill(nz, xs, others)), **kw)
+
+        return _pick(out_nz, jax.tree.leaves(jax.jvp(g, tuple(xs), tuple(ts))[1]))
+
+    return tangent
+
+
+def _with_float0(out, out_nz: list, tan: list):
+    """The tangent tree of ``out``: ``tan`` for the leaves flagged in ``out_nz``, ``float0``
+    zeros for the others (integer and boolean outputs)."""
+    leaves = jax.tree.leaves(out)
     zeros = [
         None if k else np.zeros(jnp.shape(o), jax.dtypes.float0)
-        for o, k in zip(jax.tree.leaves(out), out_nz, strict=True)
+        for o, k in zip(leaves, out_nz, strict=True)
     ]
-    tan = _fill(out_nz, _linear_tangent(plain, fast, xs, leaves, ts, real), zeros)
-    return out, jax.tree.unflatten(jax.tree.structure(out), tan)
+    return jax.tree.unflatten(jax.tree.structure(out), _fill(out_nz, tan, zeros))
 
 
 def _linear_tangent(plain: Callable, fast: Callable, xs, others, ts, real: list, max_columns=None):
@@ -601,24 +613,11 @@ def forward_differentiated(fn: Callable) -> Callable:
         t_leaves, nonzero = _tangent_leaves(tangents)
         nz = [z and _is_float(x) for x, z in zip(leaves, nonzero, strict=True)]
         out = call(*primals)
-        out_leaves = jax.tree.leaves(out)
-        out_nz = [jnp.issubdtype(jnp.result_type(o), jnp.inexact) for o in out_leaves]
-
-        def plain(xs, ts, others):
-            def g(*xs):
-                return _pick(
-                    out_nz, jax.tree.leaves(fn(*jax.tree.unflatten(treedef, _fill(nz, xs, others))))
-                )
-
-            return jax.jvp(g, tuple(xs), tuple(ts))[1]
-
+        out_nz = [_is_float(o) for o in jax.tree.leaves(out)]
+        plain = _float_tangent(fn, treedef, nz, out_nz)
         xs, ts = _pick(nz, leaves), _pick(nz, t_leaves)
         tan = _linear_tangent(plain, plain, xs, leaves, ts, [True] * len(ts), math.inf)
-        zeros = [
-            None if k else np.zeros(jnp.shape(o), jax.dtypes.float0)
-            for o, k in zip(out_leaves, out_nz, strict=True)
-        ]
-        return out, jax.tree.unflatten(jax.tree.structure(out), _fill(out_nz, tan, zeros))
+        return out, _with_float0(out, out_nz, tan)
 
     call.defjvp(rule, symbolic_zeros=True)
     return call
@@ -646,16 +645,10 @@ def _transpose_by_columns(linear: Callable, cts, shapes: list, real: list) -> li
         return functools.reduce(jnp.add, terms)
 
     vals = jax.lax.map(column, cols)
-    it, start = iter(_pick(real, shapes)), 0
-    out = []
-    for s, r in zip(shapes, real, strict=True):
-        if not r:
-            out.append(jnp.zeros(s.shape, s.dtype))
-            continue
-        k = math.prod(next(it).shape)
-        out.append(vals[start : start + k].reshape(s.shape).astype(s.dtype))
-        start += k
-    return out
+    picked = _pick(real, shapes)
+    parts = jnp.split(vals, np.cumsum([math.prod(s.shape) for s in picked])[:-1].tolist())
+    cotangents = [p.reshape(s.shape).astype(s.dtype) for p, s in zip(parts, picked, strict=True)]
+    return _fill(real, cotangents, zeros)
 
 
 def _array_jvp(array_fn: Callable, primals, tangents):
