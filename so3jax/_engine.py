@@ -254,9 +254,12 @@ def _mask_eval(jaxpr, ins: list) -> list:
             elif name in sc._ELEMENTWISE:
                 ys = xs[1:] if name == "select_n" else xs
                 outs = [np.logical_or.reduce([np.broadcast_to(y, shapes[0]) for y in ys])]
+            elif name == "cond":  # the index is an integer: no tangent flows through it
+                per = [_mask_eval(b.jaxpr, xs[1:]) for b in prm["branches"]]
+                outs = [np.logical_or.reduce(ms) for ms in zip(*per, strict=True)]
             elif name in sc.CALL_PRIMITIVES and isinstance(inner, jex_core.Jaxpr):
-                # (Loops and conditionals are taken whole below: a loop's body walked
-                # once would miss what a later iteration makes depend.)
+                # (Loops are taken whole below: a loop's body walked once would miss
+                # what a later iteration makes depend.)
                 outs = _mask_eval(inner, xs)
             else:
                 raise KeyError(name)

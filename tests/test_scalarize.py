@@ -1,5 +1,7 @@
 """Scalarized stepping: same numbers as the array program, under jit, vmap and grad."""
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -293,3 +295,72 @@ def test_fusion_cut_branches_are_traced_once_per_operand_types():
     zeros = f(x, jnp.asarray(2, jnp.int32))
     assert [float(v) for v in zeros] == [0.0, 0.0, 0.0]
     assert zeros[2].dtype == jnp.bool_
+
+
+def _cuts(jaxpr) -> int:
+    """Fusion cuts (`sc._is_cut` conditionals) in a jaxpr, nested ones included."""
+    from so3jax import _scalarize as sc
+
+    n = 0
+    for e in jaxpr.eqns:
+        if e.primitive.name == "cond" and sc._is_cut(e.params["branches"]):
+            n += 1
+        for v in e.params.values():
+            for sub in v if isinstance(v, (tuple, list)) else (v,):
+                if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                    n += _cuts(sub.jaxpr)
+                elif isinstance(sub, jax.extend.core.Jaxpr):
+                    n += _cuts(sub)
+    return n
+
+
+def test_array_cuts_keep_values_and_derivatives():
+    """`array_cut` and `derivative_cut` change no value or derivative (jvp, grad, Hessian,
+    under vmap); on the CPU an `array_cut` is a conditional in XLA's program, batched or
+    not, a `derivative_cut` one only where differentiated; the scalarizer drops both;
+    the probe's index stays unbatched, so a shared operand stays unbatched."""
+    from so3jax import _scalarize as sc
+
+    def body(x, cut, deriv):
+        u = jnp.sin(x) * x[::-1] + 0.5 * x * x
+        if cut:
+            (u,) = sc.array_cut(sc.array_cut_index(x), u)
+        if deriv:
+            (u,) = sc.derivative_cut(u)
+        return jnp.sum(u * u * x) + u[0] * u[1]
+
+    x = jnp.array([0.3, -0.7, 1.1])
+    xs = jax.random.normal(jax.random.PRNGKey(1), (5, 3))
+    plain = functools.partial(body, cut=False, deriv=False)
+    for cut, deriv in ((True, False), (False, True), (True, True)):
+        f = functools.partial(body, cut=cut, deriv=deriv)
+        for t, ref in (
+            (jax.jit(f), plain),
+            (jax.jit(jax.grad(f)), jax.grad(plain)),
+            (jax.jit(jax.hessian(f)), jax.hessian(plain)),
+            (
+                lambda x, f=f: jax.jvp(f, (x,), (x[::-1],))[1],
+                lambda x: jax.jvp(plain, (x,), (x[::-1],))[1],
+            ),
+        ):
+            np.testing.assert_allclose(np.asarray(t(x)), np.asarray(ref(x)), rtol=1e-14)
+        got = jax.jit(jax.vmap(jax.grad(f)))(xs)
+        ref = jax.vmap(jax.grad(plain))(xs)
+        np.testing.assert_allclose(np.asarray(got), np.asarray(ref), rtol=1e-14)
+        n_fwd = _cuts(jax.make_jaxpr(f)(x).jaxpr)
+        n_jvp = _cuts(jax.make_jaxpr(lambda x, f=f: jax.jvp(f, (x,), (x,)))(x).jaxpr)
+        assert n_fwd == (1 if cut else 0)
+        assert n_jvp == (1 if cut else 0) + (1 if deriv else 0)
+        assert "conditional(" in jax.jit(jax.vmap(jax.grad(f))).lower(xs).compile().as_text()
+        # the scalarizer drops them: its programs place their own cuts
+        jvp, _ = sc.flat_program(lambda x, f=f: jax.jvp(f, (x,), (x,)), x)
+        assert "cond[" not in str(jax.make_jaxpr(jvp)(sc.split(x)))
+
+    def pair(a, b):  # a cut over a batched and a shared operand
+        return sc.array_cut(sc.array_cut_index(a), a * 2.0, b * 3.0)
+
+    jaxpr = jax.make_jaxpr(pair)(x, x).jaxpr
+    assert sc.batched_outputs(jaxpr, [True, False]) == [True, False]
+    a, b = jax.vmap(pair, in_axes=(0, None), out_axes=(0, None))(xs, x)  # b: unbatched
+    np.testing.assert_allclose(np.asarray(a), 2.0 * np.asarray(xs), rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(b), 3.0 * np.asarray(x), rtol=1e-15)

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._scalarize import array_cut, array_cut_index, derivative_cut
 from .._so3 import _D_SERIES, _cross, _dcayinv, _dexpinv, _dot, _polyval
 from .._state import LieState, increment, retract
 from ._base import AbstractLieSolver, ButcherTableau, lincomb
@@ -47,6 +48,12 @@ def _pull_back(u, xi, exact: bool, order: int, coords: str):
     if exact:
         return _dexpinv(u, xi)
     return _dexpinv_truncated(u, xi, order)
+
+
+def _consumers(tableau: ButcherTableau, j: int) -> int:
+    """How many later stages and weights read stage ``j`` (nonzero tableau entries)."""
+    rows = [row for row in tableau.a[j:] if len(row) > j]
+    return sum(1 for row in rows if row[j] != 0) + int(tableau.b[j] != 0)
 
 
 def rkmk_stages(
@@ -83,8 +90,17 @@ def rkmk_stages(
             f = f0
         else:
             f = scene.vector_field(t + tableau.c[i] * h, Yi)
-        kts.append(f.xi if u is None else _pull_back(u, f.xi, exact, order, coords))
-        dxs.append(f.dx)
+        kt = f.xi if u is None else _pull_back(u, f.xi, exact, order, coords)
+        # A stage feeds later ones: materialized, or XLA recomputes it, dexp^-1 and
+        # vector field included, in each (`array_cut_index`; RKMK45's forward pass over
+        # 16 seed runs: 28 against 17 ms). A stage with two consumers (RK4's) pays
+        # for a cut only in the derivative programs (`derivative_cut`).
+        if _consumers(tableau, i) >= 3:
+            kt, dx = array_cut(array_cut_index(kt), kt, f.dx)
+        else:
+            kt, dx = derivative_cut(kt, f.dx)
+        kts.append(kt)
+        dxs.append(dx)
     if return_last:
         return kts, dxs, f
     return kts, dxs
