@@ -55,6 +55,7 @@ def _choose_xla_flags() -> None:
 _choose_xla_flags()  # before JAX starts its backend in this process
 
 import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -92,3 +93,25 @@ _MODULE_SECONDS = {
 def pytest_collection_modifyitems(config, items):
     """Longest modules first (a stable sort: the order within a module is kept)."""
     items.sort(key=lambda item: -_MODULE_SECONDS.get(item.path.name, 0))
+
+
+def _count_cuts(jaxpr) -> int:
+    from so3jax._scalarize import _is_cut
+
+    n = 0
+    for e in jaxpr.eqns:
+        n += e.primitive.name == "cond" and _is_cut(e.params["branches"])
+        for v in e.params.values():
+            for sub in v if isinstance(v, (tuple, list)) else (v,):
+                if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                    n += _count_cuts(sub.jaxpr)
+                elif isinstance(sub, jax.extend.core.Jaxpr):
+                    n += _count_cuts(sub)
+    return n
+
+
+@pytest.fixture
+def count_cuts():
+    """How many fusion cuts (`_scalarize._is_cut` conditionals) a jaxpr holds, nested ones
+    included."""
+    return _count_cuts

@@ -831,20 +831,7 @@ def test_sweep_chunk_default_per_platform():
     assert _engine.sweep_chunk([FakeGPU("raise")], 10**6, 8) == 1024
 
 
-def _n_cuts(jaxpr) -> int:
-    n = 0
-    for e in jaxpr.eqns:
-        n += e.primitive.name == "cond" and sc._is_cut(e.params["branches"])
-        for v in e.params.values():
-            for sub in v if isinstance(v, (tuple, list)) else (v,):
-                if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                    n += _n_cuts(sub.jaxpr)
-                elif isinstance(sub, jax.extend.core.Jaxpr):
-                    n += _n_cuts(sub)
-    return n
-
-
-def test_array_programs_cut_where_xla_would_recompute(monkeypatch):
+def test_array_programs_cut_where_xla_would_recompute(monkeypatch, count_cuts):
     """On the CPU the array programs' derivative rules and Runge-Kutta stages go through
     fusion cuts (`sc.array_cut_index`): the Jacobian program over a small batch has them,
     a single RKMK4 run's forward pass none (its stages cut only when differentiated),
@@ -856,16 +843,16 @@ def test_array_programs_cut_where_xla_would_recompute(monkeypatch):
         return jnp.mean(jax.vmap(lambda R0: _one_cost(sc0, k, R0, s.RKMK4()))(R0s))
 
     k = jnp.array([8.81, 2.54])
-    jac = _n_cuts(jax.make_jaxpr(jax.jacfwd(batch_cost))(k).jaxpr)
-    fwd = _n_cuts(jax.make_jaxpr(lambda k: _one_cost(sc0, k, R0s[0], s.RKMK4()))(k).jaxpr)
-    rk45 = _n_cuts(jax.make_jaxpr(lambda k: _one_cost(sc0, k, R0s[0], s.RKMK45()))(k).jaxpr)
+    jac = count_cuts(jax.make_jaxpr(jax.jacfwd(batch_cost))(k).jaxpr)
+    fwd = count_cuts(jax.make_jaxpr(lambda k: _one_cost(sc0, k, R0s[0], s.RKMK4()))(k).jaxpr)
+    rk45 = count_cuts(jax.make_jaxpr(lambda k: _one_cost(sc0, k, R0s[0], s.RKMK45()))(k).jaxpr)
     assert jac == 4 * 2 + 4  # 4 exponential updates (matrices, tangent) and 4 stages
     assert fwd == 0
     assert rk45 == 5  # DOPRI5's stages 1 to 5 (read 7, 4, 5, 4, 3 times)
     jax.clear_caches()  # the traces above hold the CPU's cuts
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     try:
-        assert _n_cuts(jax.make_jaxpr(jax.jacfwd(batch_cost))(k).jaxpr) == 0
+        assert count_cuts(jax.make_jaxpr(jax.jacfwd(batch_cost))(k).jaxpr) == 0
     finally:
         monkeypatch.undo()
         jax.clear_caches()

@@ -297,24 +297,7 @@ def test_fusion_cut_branches_are_traced_once_per_operand_types():
     assert zeros[2].dtype == jnp.bool_
 
 
-def _cuts(jaxpr) -> int:
-    """Fusion cuts (`sc._is_cut` conditionals) in a jaxpr, nested ones included."""
-    from so3jax import _scalarize as sc
-
-    n = 0
-    for e in jaxpr.eqns:
-        if e.primitive.name == "cond" and sc._is_cut(e.params["branches"]):
-            n += 1
-        for v in e.params.values():
-            for sub in v if isinstance(v, (tuple, list)) else (v,):
-                if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                    n += _cuts(sub.jaxpr)
-                elif isinstance(sub, jax.extend.core.Jaxpr):
-                    n += _cuts(sub)
-    return n
-
-
-def test_array_cuts_keep_values_and_derivatives():
+def test_array_cuts_keep_values_and_derivatives(count_cuts):
     """`array_cut` and `derivative_cut` change no value or derivative (jvp, grad, Hessian,
     under vmap); on the CPU an `array_cut` is a conditional in XLA's program, batched or
     not, a `derivative_cut` one only where differentiated; the scalarizer drops both;
@@ -347,8 +330,8 @@ def test_array_cuts_keep_values_and_derivatives():
         got = jax.jit(jax.vmap(jax.grad(f)))(xs)
         ref = jax.vmap(jax.grad(plain))(xs)
         np.testing.assert_allclose(np.asarray(got), np.asarray(ref), rtol=1e-14)
-        n_fwd = _cuts(jax.make_jaxpr(f)(x).jaxpr)
-        n_jvp = _cuts(jax.make_jaxpr(lambda x, f=f: jax.jvp(f, (x,), (x,)))(x).jaxpr)
+        n_fwd = count_cuts(jax.make_jaxpr(f)(x).jaxpr)
+        n_jvp = count_cuts(jax.make_jaxpr(lambda x, f=f: jax.jvp(f, (x,), (x,)))(x).jaxpr)
         assert n_fwd == (1 if cut else 0)
         assert n_jvp == (1 if cut else 0) + (1 if deriv else 0)
         assert "conditional(" in jax.jit(jax.vmap(jax.grad(f))).lower(xs).compile().as_text()
