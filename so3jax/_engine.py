@@ -7,10 +7,10 @@ is, with no flag for the user to know:
 
 - **a single run** executes the array program: ``lax.scan`` over the step as
   written (3-vectors and 3x3 matrices), the fastest layout for one trajectory. On
-  CPU its derivative rules, its chains of updates and the Runge-Kutta stages that
-  later stages read are cut where XLA would recompute them in every element of
-  their consumers (`so3jax._scalarize.array_cut_index`; a gradient over 16 seed
-  runs 1.7x faster);
+  CPU the array programs (this one and small batches') cut their derivative rules,
+  chains of updates and the Runge-Kutta stages that later stages read where XLA
+  would recompute them in every element of their consumers
+  (`so3jax._scalarize.array_cut_index`; a gradient over 16 seed runs 1.7x faster);
 - **a batch under ``vmap``** of 32 runs or more executes the scalarized
   program (`so3jax._scalarize`): every scalar component of the carry is its
   own contiguous ``(B,)`` array and a step is a few hundred small elementwise

@@ -389,7 +389,7 @@ def _apply(eqn, ins):
         cj = p.get("call_jaxpr") or p.get("fun_jaxpr")
         return _closed(cj, ins)
     if name == "custom_vmap_call":
-        if getattr(p["rule"], "rule", None) is _probe_rule:
+        if _is_probe(p):
             # `cut_index`'s probe, whose only consumers are the cuts dropped below:
             # evaluated, it would add a consumer to the values it reads, and
             # `_eval_with_cuts` would cut them (B = 256 gradient: 1.15x slower).
@@ -581,6 +581,11 @@ def _probe_rule(axis_size, in_batched, xs):
     # Unbatched under vmap (the batch axis is read as data): a batched index would
     # turn every cut into a `select`, which XLA fuses away.
     return _probe(xs), False
+
+
+def _is_probe(params) -> bool:
+    """Whether a ``custom_vmap_call``'s parameters are `cut_index`'s probe's."""
+    return getattr(params["rule"], "rule", None) is _probe_rule
 
 
 def cut_index(tree):
@@ -812,7 +817,7 @@ def eqn_batched(e, flags: list) -> list:
     if not any(flags):
         return [False] * n
     name, prm = e.primitive.name, e.params
-    if name == "custom_vmap_call" and getattr(prm["rule"], "rule", None) is _probe_rule:
+    if name == "custom_vmap_call" and _is_probe(prm):
         return [False] * n  # `cut_index`'s probe stays unbatched
     if name == "scan" and (split := scan_split(e)) is not None:
         nc, ncar = split
