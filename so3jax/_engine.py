@@ -790,22 +790,50 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str) -> Callable:
         try:
             cuts = cut_from is not None and axis_size >= cut_from
             index = sc.cut_index(args) if cuts else None
-            if what in ("run", "scalar", "tangent", "jacobian", "jvp") and index is not None:
-                # The forward, tangent and Jacobian loops settle their carry's batching up
-                # front (`sc.settle_batched`); the adjoint's backward scan does not.
-                def cut(one, *a):
-                    return scalar_fn(*a, cut=index, batched=in_batched, one=one)
 
-                one = jnp.zeros((axis_size,), jnp.int32)
-                out = jax.vmap(cut, in_axes=(0, *axes))(one, *args)
-            else:
-                cut = functools.partial(scalar_fn, cut=index)
-                out = jax.vmap(cut, in_axes=axes)(*args)
+            def runs(*args):
+                if what in ("run", "scalar", "tangent", "jacobian", "jvp") and index is not None:
+                    # The forward, tangent and Jacobian loops settle their carry's batching
+                    # up front (`sc.settle_batched`); the adjoint's backward scan does not.
+                    def cut(one, *a):
+                        return scalar_fn(*a, cut=index, batched=in_batched, one=one)
+
+                    one = jnp.zeros((axis_size,), jnp.int32)
+                    return jax.vmap(cut, in_axes=(0, *axes))(one, *args)
+                return jax.vmap(functools.partial(scalar_fn, cut=index), in_axes=axes)(*args)
+
+            out = _columns_outside(runs, args, in_batched) if what == "jacobian" else runs(*args)
         except sc.ScalarizeError:
             out = array_fn.vmap(axis_size, in_batched, args)
         return out, jax.tree.map(lambda _: True, out)
 
     return fn
+
+
+def _columns_outside(runs: Callable, args, in_batched):
+    """``runs(P, c0, dP, dc)`` (a batch of scalarized Jacobian programs) with the
+    column axis of the tangents outside the runs' axis.
+
+    Under ``runs`` alone the Jacobian program's columns are a ``vmap`` inside the
+    runs' ``vmap``, so every tangent component is a ``(B, n)`` array whose columns
+    are its minor axis: each operation between a primal ``(B,)`` and a tangent
+    broadcasts the primal across that axis of 2 (two gains), an inner loop XLA's CPU
+    code does not vectorise well. Here one column at a time runs under ``runs``, and
+    the columns are a ``vmap`` around it: tangent components are ``(n, B)``, the
+    primal stays ``(B,)`` and is computed once (it does not depend on the tangents).
+    The gradient of the mean cost over 256 seed starts (two gains, 1000 steps) ran
+    1.2x faster, ``jacfwd`` 1.25x (S44).
+    """
+    P, c0, dP, dc = args
+    col_axes = jax.tree.map(lambda b: 1 if b else 0, (in_batched[2], in_batched[3]))
+
+    def column(dP1, dc1):
+        dP1, dc1 = jax.tree.map(jnp.expand_dims, (dP1, dc1), col_axes)
+        ys, cN, dys, dcN = runs(P, c0, dP1, dc1)
+        # dys: (B, n_save, 1, ...), dcN: (B, 1, ...) with this one column
+        return ys, cN, jax.tree.map(lambda a: a[:, :, 0], dys), jax.tree.map(lambda a: a[:, 0], dcN)
+
+    return jax.vmap(column, in_axes=col_axes, out_axes=(None, None, 2, 1))(dP, dc)
 
 
 def _component_flags(example, batched) -> list:

@@ -652,9 +652,11 @@ def test_bad_program_is_rejected():
 def test_scalarized_tangent_program_for_large_batches():
     """32 starts or more: the tangent program runs scalarized (fusion cuts included).
     With two gains the default reverse mode takes the Jacobian's columns from it, and
-    equals JAX's autodiff."""
+    equals JAX's autodiff; so does ``jacfwd``. The columns are the outer axis of every
+    tangent component, ``(2, B)`` arrays, not ``(B, 2)`` (`_engine._columns_outside`)."""
     sc0 = _seed()
-    R0, W0 = s.initial_states(jax.random.PRNGKey(3), _engine.batched_layout("jacobian")[1])
+    B = _engine.batched_layout("jacobian")[1]
+    R0, W0 = s.initial_states(jax.random.PRNGKey(3), B)
 
     def cost(program):
         return lambda k: s.expected_cost(
@@ -663,7 +665,12 @@ def test_scalarized_tangent_program_for_large_batches():
 
     f = _jit_grad(cost("auto"))
     assert "conditional(" in f.lower(K0).compile().as_text()  # scalarized, with cuts
-    assert _rel(f(K0), _jit_grad(cost("autodiff"))(K0)) < 1e-10
+    ref = _jit_grad(cost("autodiff"))(K0)
+    assert _rel(f(K0), ref) < 1e-10
+    jf = jax.jit(jax.jacfwd(cost("auto")))
+    assert _rel(jf(K0), ref) < 1e-10
+    hlo = jf.lower(K0).as_text()
+    assert f"tensor<2x{B}xf64>" in hlo and f"tensor<{B}x2xf64>" not in hlo
 
 
 def test_one_pass_jacobian_through_gains_and_initial_rates(monkeypatch):
