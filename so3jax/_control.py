@@ -27,7 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._dynamics import RigidBody
-from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _prep, _to_quat, _vee
+from ._scalarize import scalarizing
+from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mtv, _mv, _prep, _to_quat, _vee
 from ._types import Array, ArrayLike, Rot, Scalar, Vec3
 
 # --------------------------------------------------------------------------
@@ -77,26 +78,45 @@ class GeometricGains(eqx.Module):
 
 
 def _errors(R, Omega, Rd, Omega_d):
-    """``(e_R, e_Omega, R^T Rd)`` without input checks."""
+    """``(e_R, e_Omega)`` without input checks."""
+    e_R, (a,) = _errors_and_rates(R, Rd, (Omega_d,))
+    return e_R, Omega - a
+
+
+def _errors_and_rates(R, Rd, vs):
+    """``e_R = 1/2 vee(Rd^T R - R^T Rd)`` and ``R^T Rd v`` for each ``v`` in ``vs``.
+
+    One run forms ``R^T Rd`` (one product, then products with the vectors: the fewest
+    kernels). Traced for the scalarized programs (`so3jax._scalarize.scalarizing`),
+    ``R^T Rd`` is not formed: ``e_R`` reads six entries of ``Rd^T R``, and each
+    ``R^T Rd v`` is ``R^T (Rd v)``, whose ``Rd v`` a batch sharing its reference
+    computes once: per evaluation, 66 operations on the run's state instead of 81,
+    and as many fewer per tangent column of a derivative. The seed's forward pass over
+    256 runs took 1.06x less time, its gradient 1.03x to 1.08x (S44). Formed that way
+    in the array program, one seed run took 1.15x longer (more, smaller kernels).
+    """
+    if scalarizing():
+
+        def q(i, j):  # (Rd^T R)_ij
+            return _dot(Rd[..., :, i], R[..., :, j])
+
+        e_R = 0.5 * jnp.stack([q(2, 1) - q(1, 2), q(0, 2) - q(2, 0), q(1, 0) - q(0, 1)], -1)
+        return e_R, tuple(_mtv(R, _mv(Rd, v)) for v in vs)
     RtRd = _mm(_mT(R), Rd)
-    # e_R = 1/2 vee(Rd^T R - R^T Rd); `_vee` takes the skew part, so this is _vee(Rd^T R).
-    e_R = _vee(_mT(RtRd))
-    e_Omega = Omega - _mv(RtRd, Omega_d)
-    return e_R, e_Omega, RtRd
+    return _vee(_mT(RtRd)), tuple(_mv(RtRd, v) for v in vs)
 
 
-def _feedforward(body: RigidBody, Omega, RtRd, Omega_d, dOmega_d):
-    """``Omega x J Omega - J (hat(Omega) R^T Rd Omega_d - R^T Rd dOmega_d)``."""
+def _feedforward(body: RigidBody, Omega, a, b):
+    """``Omega x J Omega - J (hat(Omega) a - b)`` with ``a = R^T Rd Omega_d`` and
+    ``b = R^T Rd dOmega_d``."""
     J = body.inertia
-    a = _mv(RtRd, Omega_d)
-    b = _mv(RtRd, dOmega_d)
     return _cross(Omega, _mv(J, Omega)) - _mv(J, _cross(Omega, a) - b)
 
 
 def _geometric_torque(gains, body, R, Omega, Rd, Omega_d, dOmega_d):
-    e_R, e_Omega, RtRd = _errors(R, Omega, Rd, Omega_d)
-    ff = _feedforward(body, Omega, RtRd, Omega_d, dOmega_d)
-    return -gains.k_R * e_R - gains.k_Omega * e_Omega + ff
+    e_R, (a, b) = _errors_and_rates(R, Rd, (Omega_d, dOmega_d))
+    ff = _feedforward(body, Omega, a, b)
+    return -gains.k_R * e_R - gains.k_Omega * (Omega - a) + ff
 
 
 def tracking_errors(R: Rot, Omega: Vec3, Rd: Rot, Omega_d: Vec3) -> tuple[Vec3, Vec3]:
@@ -121,7 +141,7 @@ def tracking_errors(R: Rot, Omega: Vec3, Rd: Rot, Omega_d: Vec3) -> tuple[Vec3, 
     Omega = _prep(Omega, "Omega", (3,))
     Rd = _prep(Rd, "Rd", (3, 3))
     Omega_d = _prep(Omega_d, "Omega_d", (3,))
-    e_R, e_Omega, _ = _errors(R, Omega, Rd, Omega_d)
+    e_R, e_Omega = _errors(R, Omega, Rd, Omega_d)
     return e_R, e_Omega
 
 
@@ -290,9 +310,9 @@ class QuaternionController(AbstractController):
             raise ValueError("QuaternionController needs its memory [h, q_lift] (shape (5,))")
         h = memory[..., 0:1]
         q = self._quat(R, Rd, memory)
-        RtRd = _mm(_mT(R), Rd)
-        e_Omega = Omega - _mv(RtRd, Omega_d)
-        ff = _feedforward(body, Omega, RtRd, Omega_d, dOmega_d)
+        _, (a, b) = _errors_and_rates(R, Rd, (Omega_d, dOmega_d))
+        ff = _feedforward(body, Omega, a, b)
+        e_Omega = Omega - a
         return -self.k_q * h * q[..., 1:] - self.k_Omega * e_Omega + ff
 
     def init_memory(self, R, Rd):

@@ -140,7 +140,7 @@ class Tracking(MechanicalScene):
     def observe(self, t, y):
         R, Rd, Omega, mem, Od, dOd = self._parts(t, y)
         M = self.controller(t, self.body, R, Omega, Rd, Od, dOd, self._memory(mem))
-        e_R, e_Omega, _ = _errors(R, Omega, Rd, Od)
+        e_R, e_Omega = _errors(R, Omega, Rd, Od)
         out = {"R": R, "Omega": Omega, "Rd": Rd, "M": M, "e_R": e_R, "e_Omega": e_Omega}
         if self.controller.memory_size:
             out.update(self.controller.observe(R, Rd, mem))
