@@ -29,7 +29,8 @@ is, with no flag for the user to know:
   six per-axis gains, gains and initial rates) the run computes its value and
   its Jacobian in **one pass**: the primal once, the unit tangents batched over
   it as columns (`_Loop.jac_array` / `_Loop.jac_scalar`, scalarized for
-  batches of 32 runs or more). The tangent is that Jacobian times the input
+  batches of 32 runs or more, with the columns the outer axis of every tangent
+  component: `_columns_outside`). The tangent is that Jacobian times the input
   tangent: ``jacfwd`` reads the columns, and ``grad`` is JAX's transpose of
   the contraction, with nothing stored per step beyond the saved points and
   nothing recomputed. Through more scalars (DiffTune's twelve gains) both modes
