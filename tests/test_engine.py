@@ -673,6 +673,28 @@ def test_scalarized_tangent_program_for_large_batches():
     assert f"tensor<2x{B}xf64>" in hlo and f"tensor<{B}x2xf64>" not in hlo
 
 
+def test_scalarized_jacobian_without_cuts(monkeypatch):
+    """The scalarized Jacobian program without fusion cuts (a GPU's, from 4096 runs there),
+    with its columns outside the runs: ``grad`` and ``jacfwd`` equal JAX's autodiff,
+    here at 32 runs on the CPU."""
+    B = 32
+    monkeypatch.setitem(_engine.BATCHED_LAYOUT, "jacobian", (B, None))
+    sc0 = _seed()
+    R0, W0 = s.initial_states(jax.random.PRNGKey(4), B)
+
+    def cost(program):
+        return lambda k: s.expected_cost(
+            sc0, k[0], k[1], R0, W0, SEED_METHOD, DT, N - 1, program=program
+        )
+
+    jf = jax.jit(jax.jacfwd(cost("auto")))
+    hlo = jf.lower(K0).as_text()
+    assert f"tensor<2x{B}xf64>" in hlo and "conditional" not in jf.lower(K0).compile().as_text()
+    ref = _jit_grad(cost("autodiff"))(K0)
+    assert _rel(jf(K0), ref) < 1e-10
+    assert _rel(_jit_grad(cost("auto"))(K0), ref) < 1e-10
+
+
 def test_one_pass_jacobian_through_gains_and_initial_rates(monkeypatch):
     """A few inputs (2 gains + 3 initial rates): value and derivatives from one pass.
 
