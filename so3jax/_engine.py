@@ -48,7 +48,8 @@ is, with no flag for the user to know:
 Second derivatives (``jax.hessian``, ``jvp`` of ``grad``, and higher) differentiate
 the programs the rules run: each is a `_dual`, whose own derivative is JAX's ``jvp``
 of the array program for one run and, under ``vmap``, the ``jvp`` of the program a batch
-runs (scalarized from 32 runs on a CPU: ``BATCHED_LAYOUT["jvp"]``), behind a
+runs (scalarized from 32 runs on a CPU: ``BATCHED_LAYOUT["jvp"]``; a Jacobian
+program's with its columns outside the runs, as the program itself), behind a
 ``linear_call`` whose transpose runs that program once per unit tangent through at most
 `FORWARD_JACOBIAN_MAX` scalars (`_transpose_by_columns`) and is JAX's transpose of the
 array program through more; the value beside it is the `_dual` itself (`_dual_jvp`).
@@ -436,11 +437,14 @@ def batched_layout(what: str) -> tuple:
     return BATCHED_LAYOUT[what]
 
 
-def _dual(array_fn: Callable, scalar_fn: Callable, what: str, settle=None) -> Callable:
+def _dual(
+    array_fn: Callable, scalar_fn: Callable, what: str, settle=None, columns=None
+) -> Callable:
     """``array_fn`` when unbatched; ``vmap`` of ``scalar_fn`` when batched.
 
     ``settle``: how the derivative rule (`_dual_jvp`) starts the carry tangents of the
-    programs' loops (``None``: as JAX finds them).
+    programs' loops (``None``: as JAX finds them). ``columns``: for the ``jvp`` of a
+    Jacobian program, where its columns are (`_columns_outside`).
 
     ``scalar_fn`` raises `ScalarizeError` at trace time for an unsupported
     primitive (a loop, dynamic indexing, `jax.checkpoint` inside the step); the
@@ -478,7 +482,8 @@ def _dual(array_fn: Callable, scalar_fn: Callable, what: str, settle=None) -> Ca
     @jax.custom_jvp
     def call(*args):
         closed, shape = jax.make_jaxpr(array_fn, return_shape=True)(*args)
-        return _dual_of(_Traced(closed, jax.tree.structure(shape)), scalar_fn, what)(*args)
+        traced = _Traced(closed, jax.tree.structure(shape))
+        return _dual_of(traced, scalar_fn, what, columns)(*args)
 
     rule = functools.partial(_dual_jvp, array_fn, scalar_fn, what, settle)
     call.defjvp(rule, symbolic_zeros=True)
@@ -525,7 +530,11 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     # linear_call.
     out_nz = [_is_float(o) for o in jax.tree.leaves(out)]
     plain = _float_tangent(array_fn, treedef, nz, out_nz)
-    fast = _dual(plain, _float_tangent(scalar_fn, treedef, nz, out_nz), "jvp")
+    columns = None
+    if what == "jacobian":  # its columns outside the runs in the jvp program too
+        cols = _jacobian_columns(primals, jax.tree.structure(out))
+        columns = (_pick(nz, cols[0]) * 2 + cols[0], _pick(out_nz, cols[1]))
+    fast = _dual(plain, _float_tangent(scalar_fn, treedef, nz, out_nz), "jvp", columns=columns)
     xs, ts = _pick(nz, leaves), _pick(nz, t_leaves)
     # The tangents the settle added are zeros (not real ones): `_linear_tangent`'s transpose.
     tan = _linear_tangent(plain, fast, xs, leaves, ts, _pick(nz, real))
@@ -778,7 +787,7 @@ def _batch_by(x, one):
     return x  # (a key, say: JAX's own fixed point batches it if it must)
 
 
-def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str) -> Callable:
+def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) -> Callable:
     fn = custom_vmap(array_fn)
 
     @fn.def_vmap
@@ -803,7 +812,14 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str) -> Callable:
                     return jax.vmap(cut, in_axes=(0, *axes))(one, *args)
                 return jax.vmap(functools.partial(scalar_fn, cut=index), in_axes=axes)(*args)
 
-            out = _columns_outside(runs, args, in_batched) if what == "jacobian" else runs(*args)
+            if what == "jacobian":
+                columns_ = _jacobian_columns(args, array_fn.out_tree)
+            else:
+                columns_ = columns
+            if columns_ is None:
+                out = runs(*args)
+            else:
+                out = _columns_outside(runs, args, in_batched, *columns_)
         except sc.ScalarizeError:
             out = array_fn.vmap(axis_size, in_batched, args)
         return out, jax.tree.map(lambda _: True, out)
@@ -811,9 +827,12 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str) -> Callable:
     return fn
 
 
-def _columns_outside(runs: Callable, args, in_batched):
-    """``runs(P, c0, dP, dc)`` (a batch of scalarized Jacobian programs) with the
-    column axis of the tangents outside the runs' axis.
+def _columns_outside(runs: Callable, args, in_batched, in_cols: list, out_cols: list):
+    """``runs(*args)`` (a batch of scalarized Jacobian programs, or their ``jvp``) with
+    the column axis of the Jacobian's tangents outside the runs' axis.
+
+    ``in_cols`` gives, per leaf of ``args``, the axis of the columns in one run's
+    leaf (``None``: the leaf has none); ``out_cols`` the same per leaf of the output.
 
     Under ``runs`` alone the Jacobian program's columns are a ``vmap`` inside the
     runs' ``vmap``, so every tangent component is a ``(B, n)`` array whose columns
@@ -825,16 +844,38 @@ def _columns_outside(runs: Callable, args, in_batched):
     The gradient of the mean cost over 256 seed starts (two gains, 1000 steps) ran
     1.2x faster, ``jacfwd`` 1.25x (S44).
     """
-    P, c0, dP, dc = args
-    col_axes = jax.tree.map(lambda b: 1 if b else 0, (in_batched[2], in_batched[3]))
+    leaves, treedef = jax.tree.flatten(args)
+    flags = jax.tree.leaves(in_batched)
+    axes = [None if c is None else c + int(b) for c, b in zip(in_cols, flags, strict=True)]
+    out_tree = []
 
-    def column(dP1, dc1):
-        dP1, dc1 = jax.tree.map(jnp.expand_dims, (dP1, dc1), col_axes)
-        ys, cN, dys, dcN = runs(P, c0, dP1, dc1)
-        # dys: (B, n_save, 1, ...), dcN: (B, 1, ...) with this one column
-        return ys, cN, jax.tree.map(lambda a: a[:, :, 0], dys), jax.tree.map(lambda a: a[:, 0], dcN)
+    def column(*cols):
+        it = iter(cols)
+        pairs = zip(leaves, axes, strict=True)
+        one = [x if a is None else jnp.expand_dims(next(it), a) for x, a in pairs]
+        outs, tree = jax.tree.flatten(runs(*jax.tree.unflatten(treedef, one)))
+        out_tree.append(tree)
+        # every output is batched over the runs (axis 0), so a run's axis c is c + 1
+        pairs = zip(outs, out_cols, strict=True)
+        return [o if c is None else jnp.squeeze(o, c + 1) for o, c in pairs]
 
-    return jax.vmap(column, in_axes=col_axes, out_axes=(None, None, 2, 1))(dP, dc)
+    outs = jax.vmap(
+        column,
+        in_axes=tuple(a for a in axes if a is not None),
+        out_axes=[None if c is None else c + 1 for c in out_cols],
+    )(*[x for x, a in zip(leaves, axes, strict=True) if a is not None])
+    return jax.tree.unflatten(out_tree[0], outs)
+
+
+def _jacobian_columns(args, out_tree) -> tuple[list, list]:
+    """`_columns_outside`'s ``in_cols`` and ``out_cols`` for the Jacobian program:
+    ``(P, c0, dP, dc) -> (ys, cN, dys, dcN)``, one run's columns on axis 0 of ``dP`` and
+    ``dc``, axis 1 of ``dys`` (after the saved points) and axis 0 of ``dcN``."""
+    n_in = [len(jax.tree.leaves(a)) for a in args]
+    n_out = [t.num_leaves for t in out_tree.children()]
+    in_cols = [None] * (n_in[0] + n_in[1]) + [0] * (n_in[2] + n_in[3])
+    out_cols = [None] * (n_out[0] + n_out[1]) + [1] * n_out[2] + [0] * n_out[3]
+    return in_cols, out_cols
 
 
 def _component_flags(example, batched) -> list:

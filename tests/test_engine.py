@@ -671,6 +671,8 @@ def test_scalarized_tangent_program_for_large_batches():
     assert _rel(jf(K0), ref) < 1e-10
     hlo = jf.lower(K0).as_text()
     assert f"tensor<2x{B}xf64>" in hlo and f"tensor<{B}x2xf64>" not in hlo
+    # the Hessian's jvp of that program too (its values: test_second_derivatives_...)
+    assert f"tensor<{B}x2xf64>" not in jax.jit(jax.hessian(cost("auto"))).lower(K0).as_text()
 
 
 def test_scalarized_jacobian_without_cuts(monkeypatch):
