@@ -27,8 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._dynamics import RigidBody
-from ._scalarize import scalarizing
-from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mtv, _mv, _prep, _to_quat, _vee
+from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _prep, _to_quat, _vee
 from ._types import Array, ArrayLike, Rot, Scalar, Vec3
 
 # --------------------------------------------------------------------------
@@ -86,23 +85,14 @@ def _errors(R, Omega, Rd, Omega_d):
 def _errors_and_rates(R, Rd, vs):
     """``e_R = 1/2 vee(Rd^T R - R^T Rd)`` and ``R^T Rd v`` for each ``v`` in ``vs``.
 
-    One run forms ``R^T Rd`` (one product, then products with the vectors: the fewest
-    kernels). Traced for the scalarized programs (`so3jax._scalarize.scalarizing`),
-    ``R^T Rd`` is not formed: ``e_R`` reads six entries of ``Rd^T R``, and each
-    ``R^T Rd v`` is ``R^T (Rd v)``, whose ``Rd v`` a batch sharing its reference
-    computes once: per evaluation, 66 operations on the run's state instead of 81,
-    and as many fewer per tangent column of a derivative. The seed's forward pass over
-    256 runs took 1.06x to 1.1x less time, its gradient and ``jacfwd`` up to 1.1x
-    (S44). Formed that way in the array program, one seed run took 1.15x longer (more,
-    smaller kernels).
+    ``R^T Rd`` once, and each product with a vector once: until S44 the torque formed
+    ``R^T Rd Omega_d`` twice (for ``e_Omega`` and in the feedforward term), which the
+    scalarized programs did not merge: 15 operations per evaluation, per run and per
+    tangent column (the seed's batched forward pass over 256 runs 1.04x to 1.08x
+    faster without them). Forming ``R^T (Rd v)`` and six entries of ``Rd^T R``
+    instead, fewer operations on the run's state when a batch shares ``Rd``, measured
+    within noise there and made one run 1.15x slower: not kept.
     """
-    if scalarizing():
-
-        def q(i, j):  # (Rd^T R)_ij
-            return _dot(Rd[..., :, i], R[..., :, j])
-
-        e_R = 0.5 * jnp.stack([q(2, 1) - q(1, 2), q(0, 2) - q(2, 0), q(1, 0) - q(0, 1)], -1)
-        return e_R, tuple(_mtv(R, _mv(Rd, v)) for v in vs)
     RtRd = _mm(_mT(R), Rd)
     return _vee(_mT(RtRd)), tuple(_mv(RtRd, v) for v in vs)
 

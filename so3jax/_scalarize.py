@@ -29,7 +29,6 @@ raises `NotImplementedError`, and callers fall back to the plain function.
 
 from __future__ import annotations
 
-import contextvars
 import functools
 from collections.abc import Callable
 
@@ -441,32 +440,14 @@ def _check(jaxpr) -> None:
                     _check(sub)
 
 
-_SCALARIZING = contextvars.ContextVar("so3jax_scalarizing", default=False)
-
-
-def scalarizing() -> bool:
-    """Whether the code calling this is being traced for `scalarize`.
-
-    Code may then pick the formula with the fewest scalar operations where the array
-    program prefers another (fewer, larger kernels): both compute the same values.
-    `so3jax._control` forms ``R^T Rd`` for one run and ``R^T (Rd v)`` here (S44).
-    """
-    return _SCALARIZING.get()
-
-
 def scalarize(fn: Callable, *example_args) -> Callable:
     """``fn`` as a function over component arrays.
 
     Traces ``fn(*example_args)`` (pytrees of arrays, single-trajectory shapes)
     once, and returns ``run(*component_args)`` taking and returning the same
     pytrees with every leaf an object array of components (`to_components`).
-    The trace runs with `scalarizing` true.
     """
-    token = _SCALARIZING.set(True)
-    try:
-        closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*example_args)
-    finally:
-        _SCALARIZING.reset(token)
+    closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*example_args)
     _check(closed.jaxpr)
     consts = [_const(c) for c in closed.consts]
     in_tree = jax.tree.structure(example_args)

@@ -72,69 +72,6 @@ def test_geometric_torque_matches_numpy(vector_gains):
         np.testing.assert_allclose(eO[i], eO_ref, rtol=1e-12, atol=1e-14)
 
 
-def test_scalarized_programs_form_no_relative_attitude(monkeypatch):
-    """Traced for the scalarized programs, the controller computes ``R^T (Rd v)`` and six
-    entries of ``Rd^T R`` instead of ``R^T Rd``: the same torque (against NumPy) with
-    fewer operations on the run's attitude and rates, and fewer per tangent column.
-    (A batch sharing its reference computes ``Rd v`` once.)"""
-    from jax.extend import core as jcore
-
-    from so3jax import _control, _scalarize
-
-    rng = np.random.default_rng(1)
-    J = random_inertia(rng)
-    body = s.RigidBody(J)
-    R, Om, Rd, Od, dOd = (jnp.asarray(x[0]) for x in random_inputs(rng, 1))
-    dR = jnp.asarray(rng.normal(size=(3, 3)))
-    dOm = jnp.asarray(rng.normal(size=3))
-    gains = s.GeometricGains(8.81, 2.54)
-
-    def torque_and_tangent(x):
-        R, Om, Rd, Od, dOd, dR, dOm = x
-
-        def f(R, Om):
-            return _control._geometric_torque(gains, body, R, Om, Rd, Od, dOd)
-
-        return jax.jvp(f, (R, Om), (dR, dOm))
-
-    x = (R, Om, Rd, Od, dOd, dR, dOm)
-    assert not _scalarize.scalarizing()
-
-    def counts():
-        """Scalar operations reading the run's state (R, Omega), and its tangent."""
-        # a new function each time: JAX reuses the trace of a function it has traced
-        run, _ = _scalarize.flat_program(lambda x: torque_and_tangent(x), x)
-        flat = _scalarize.split(x)
-        out = np.array([float(v) for v in run(flat)])  # M, then its tangent
-        closed = jax.make_jaxpr(run)(flat)
-        n = [9, 3, 9, 3, 3, 9, 3]
-        flags = [i in (0, 1) for i, k in enumerate(n) for _ in range(k)]
-        tflags = [i in (5, 6) for i, k in enumerate(n) for _ in range(k)]
-        state = {v for v, f in zip(closed.jaxpr.invars, flags, strict=True) if f}
-        tangent = {v for v, f in zip(closed.jaxpr.invars, tflags, strict=True) if f}
-        c = {"state": 0, "tangent": 0}
-        for e in closed.jaxpr.eqns:
-            ins = [v for v in e.invars if isinstance(v, jcore.Var)]
-            if any(v in tangent for v in ins):
-                tangent.update(e.outvars)
-                c["tangent"] += 1
-            elif any(v in state for v in ins):
-                state.update(e.outvars)
-                c["state"] += 1
-        return c, out[:3], out[3:]
-
-    fast, M, dM = counts()
-    monkeypatch.setattr(_control, "scalarizing", lambda: False)  # the array formula
-    plain, M0, dM0 = counts()
-    # 81 -> 66 of each: R^T Rd (45), its skew part (6), two products (30) against six
-    # entries of Rd^T R (36) and R^T (Rd v) (30, Rd v not reading the state)
-    assert fast["state"] == plain["state"] - 15 and fast["tangent"] == plain["tangent"] - 15
-    M_ref = np_torque(8.81, 2.54, J, *(np.asarray(v) for v in (R, Om, Rd, Od, dOd)))[2]
-    np.testing.assert_allclose(M, M_ref, rtol=1e-13, atol=1e-13)
-    np.testing.assert_allclose(M0, M_ref, rtol=1e-13, atol=1e-13)
-    np.testing.assert_allclose(dM, dM0, rtol=1e-12, atol=1e-12)
-
-
 def test_attitude_error_is_sin_angle_axis():
     rng = np.random.default_rng(1)
     rotvec = Rotation.random(10, random_state=rng).as_rotvec()
