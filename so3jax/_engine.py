@@ -532,8 +532,11 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     plain = _float_tangent(array_fn, treedef, nz, out_nz)
     columns = None
     if what == "jacobian":  # its columns outside the runs in the jvp program too
-        cols = _jacobian_columns(primals, jax.tree.structure(out))
-        columns = (_pick(nz, cols[0]) * 2 + cols[0], _pick(out_nz, cols[1]))
+        in_cols, out_cols = _jacobian_columns(primals, jax.tree.structure(out))
+        # the jvp program's arguments are (xs, ts, others): the differentiated leaves,
+        # their tangents (shaped alike), and every leaf
+        xs_cols = _pick(nz, in_cols)
+        columns = (xs_cols + xs_cols + in_cols, _pick(out_nz, out_cols))
     fast = _dual(plain, _float_tangent(scalar_fn, treedef, nz, out_nz), "jvp", columns=columns)
     xs, ts = _pick(nz, leaves), _pick(nz, t_leaves)
     # The tangents the settle added are zeros (not real ones): `_linear_tangent`'s transpose.
@@ -812,14 +815,8 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
                     return jax.vmap(cut, in_axes=(0, *axes))(one, *args)
                 return jax.vmap(functools.partial(scalar_fn, cut=index), in_axes=axes)(*args)
 
-            if what == "jacobian":
-                columns_ = _jacobian_columns(args, array_fn.out_tree)
-            else:
-                columns_ = columns
-            if columns_ is None:
-                out = runs(*args)
-            else:
-                out = _columns_outside(runs, args, in_batched, *columns_)
+            cols = _jacobian_columns(args, array_fn.out_tree) if what == "jacobian" else columns
+            out = runs(*args) if cols is None else _columns_outside(runs, args, in_batched, *cols)
         except sc.ScalarizeError:
             out = array_fn.vmap(axis_size, in_batched, args)
         return out, jax.tree.map(lambda _: True, out)

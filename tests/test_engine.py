@@ -649,20 +649,27 @@ def test_bad_program_is_rejected():
         s.simulate(s.scenes.seed(), s.RKMK4(), 0.01, 10, save_every=3)
 
 
+def _seed_mean_cost(key, B: int, n_steps: int):
+    """``cost(program)``: the mean seed cost over ``B`` random starts as a function of the
+    two gains, run by the engine's ``program``."""
+    sc0 = _seed()
+    R0, W0 = s.initial_states(key, B)
+
+    def cost(program):
+        return lambda k: s.expected_cost(
+            sc0, k[0], k[1], R0, W0, SEED_METHOD, DT, n_steps, program=program
+        )
+
+    return cost
+
+
 def test_scalarized_tangent_program_for_large_batches():
     """32 starts or more: the tangent program runs scalarized (fusion cuts included).
     With two gains the default reverse mode takes the Jacobian's columns from it, and
     equals JAX's autodiff; so does ``jacfwd``. The columns are the outer axis of every
     tangent component, ``(2, B)`` arrays, not ``(B, 2)`` (`_engine._columns_outside`)."""
-    sc0 = _seed()
     B = _engine.batched_layout("jacobian")[1]
-    R0, W0 = s.initial_states(jax.random.PRNGKey(3), B)
-
-    def cost(program):
-        return lambda k: s.expected_cost(
-            sc0, k[0], k[1], R0, W0, SEED_METHOD, DT, N, program=program
-        )
-
+    cost = _seed_mean_cost(jax.random.PRNGKey(3), B, N)
     f = _jit_grad(cost("auto"))
     assert "conditional(" in f.lower(K0).compile().as_text()  # scalarized, with cuts
     ref = _jit_grad(cost("autodiff"))(K0)
@@ -681,14 +688,7 @@ def test_scalarized_jacobian_without_cuts(monkeypatch):
     here at 32 runs on the CPU."""
     B = 32
     monkeypatch.setitem(_engine.BATCHED_LAYOUT, "jacobian", (B, None))
-    sc0 = _seed()
-    R0, W0 = s.initial_states(jax.random.PRNGKey(4), B)
-
-    def cost(program):
-        return lambda k: s.expected_cost(
-            sc0, k[0], k[1], R0, W0, SEED_METHOD, DT, N - 1, program=program
-        )
-
+    cost = _seed_mean_cost(jax.random.PRNGKey(4), B, N - 1)
     jf = jax.jit(jax.jacfwd(cost("auto")))
     hlo = jf.lower(K0).as_text()
     assert f"tensor<2x{B}xf64>" in hlo and "conditional" not in jf.lower(K0).compile().as_text()
