@@ -521,8 +521,45 @@ def _rmul_exp(R: Array, w: Array) -> Array:
     # Materialized (`_scalarize.array_cut_index`): in a chain of updates (the
     # commutator-free methods) XLA would recompute each factor in every element
     # of the next: CG3's forward pass over 16 seed runs ran 28 ms instead of 12.
-    (out,) = _array_cut(_array_cut_index(w), R + _exp_increment(R, w))
+    (out,) = _array_cut(_array_cut_index(w), _exp_update(R, w))
     return out
+
+
+@jax.custom_jvp
+def _exp_update(R: Array, w: Array) -> Array:
+    """``R exp(w) = R + R (exp(w) - I)`` (as `_rmul_exp`, without its cut), with one
+    derivative rule for the whole update (`_exp_update_jvp`).
+
+    The Runge-Kutta-Munthe-Kaas stages and steps move with it (`so3jax._state.move`).
+    """
+    return R + _exp_increment_raw(R, w)
+
+
+@functools.partial(_exp_update.defjvp, symbolic_zeros=True)
+def _exp_update_jvp(primals, tangents):
+    """``d[R exp(w)] = dR exp(w) + R exp(w) hat(J_r(w) dw)``.
+
+    `_exp_increment_jvp` for the update itself: ``dR exp(w)`` is one product, where
+    ``dR + d[R (exp(w) - I)]`` was a product and a sum, and the rows of
+    ``R exp(w) hat(v)`` read the update's own value. The one-pass Jacobian of the seed's
+    mean cost over 256 runs (RKMK4) ran 1.1x (``grad``) to 1.2x (``jacfwd``) faster,
+    with 31 fewer kernels a step (2026-11-27).
+    """
+    R, w = primals
+    dR, dw = tangents
+    E1, B, C = _expm1_for_rules(w)
+    cut = _array_cut_index(w)  # as in `_exp_increment_jvp`
+    E, out = _array_cut(cut, E1 + _eye_like(w, w.shape[:-1]), R + _mm(R, E1))
+    d = None
+    if not isinstance(dR, SymbolicZero):
+        d = _mm(dR, E)
+    if not isinstance(dw, SymbolicZero):
+        (v,) = _array_cut(cut, _right_jacobian_times(w, dw, B, C))
+        rows = _cross(out, v[..., None, :])  # rows of R exp(w) hat(v) are r_i x v
+        d = rows if d is None else d + rows
+    if d is None:  # pragma: no cover (the rule runs only with a nonzero tangent)
+        d = jnp.zeros_like(out)
+    return out, jnp.broadcast_to(d, out.shape).astype(out.dtype)
 
 
 @jax.custom_jvp
@@ -580,7 +617,37 @@ def _rmul_cay(R: Array, u: Array) -> Array:
     Exactly orthogonal like ``exp`` but rational: no trigonometric functions,
     square roots or small-angle branches. Rows of ``R hat(u)`` are ``r_i x u``.
     """
-    return R + _cay_increment(R, u)
+    return _cay_update(R, u)
+
+
+@jax.custom_jvp
+def _cay_update(R: Array, u: Array) -> Array:
+    """``R cay(u) = R + R (cay(u) - I)`` with one derivative rule for the whole update
+    (as `_exp_update`)."""
+    return R + _cay_increment_raw(R, u)
+
+
+@functools.partial(_cay_update.defjvp, symbolic_zeros=True)
+def _cay_update_jvp(primals, tangents):
+    """``d[R cay(u)] = dR cay(u) + R cay(u) hat(c (du - u x du / 2))`` (see
+    `_cay_increment_jvp`), with ``dR cay(u)`` one product (as `_exp_update_jvp`)."""
+    R, u = primals
+    dR, du = tangents
+    cut = _array_cut_index(u)
+    out = R + _cay_increment_raw(R, u)
+    d = None
+    if not isinstance(dR, SymbolicZero):
+        eye = _eye_like(u, u.shape[:-1])
+        K, out = _array_cut(cut, eye + _cay_increment_raw(eye, u), out)
+        d = _mm(dR, K)
+    if not isinstance(du, SymbolicZero):
+        c = (4.0 / (4.0 + _dot(u, u)))[..., None]
+        (v,) = _array_cut(cut, c * (du - 0.5 * _cross(u, du)))
+        rows = _cross(out, v[..., None, :])
+        d = rows if d is None else d + rows
+    if d is None:  # pragma: no cover
+        d = jnp.zeros_like(out)
+    return out, jnp.broadcast_to(d, out.shape).astype(out.dtype)
 
 
 def _cay_increment_raw(R: Array, u: Array) -> Array:

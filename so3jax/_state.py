@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._so3 import _cay_increment, _exp_increment
+from ._so3 import _cay_increment, _cay_update, _exp_increment, _exp_update
 from ._types import Array, Float
 
 
@@ -46,7 +46,15 @@ def retract(y: LieState, u: Array, dx: Array, coords: str = "exp") -> LieState:
 
     ``coords="cayley"`` moves by the Cayley map, ``R cay(u)``, instead.
     """
-    return LieState(y.R + increment(y.R, u, coords), y.x + dx)
+    return LieState(move(y.R, u, coords), y.x + dx)
+
+
+def move(R: Array, u: Array, coords: str = "exp") -> Array:
+    """``R exp(u)`` (or ``R cay(u)``), computed as ``R + increment(R, u)``.
+
+    Its derivative is one closed-form rule for the whole update (`so3jax._so3._exp_update`).
+    """
+    return (_cay_update if coords == "cayley" else _exp_update)(R, u)
 
 
 def increment(R: Array, u: Array, coords: str = "exp") -> Array:

@@ -380,10 +380,14 @@ def _increment_pairs():
         "exp_increment": (S._exp_increment, lambda R, w: S._mm(R, S._expm1_raw(w))),
         "expm1": (lambda R, w: S._mm(R, S._expm1(w)), lambda R, w: S._mm(R, S._expm1_raw(w))),
         "cay_increment": (S._cay_increment, S._cay_increment_raw),
+        "exp_update": (S._exp_update, lambda R, w: R + S._mm(R, S._expm1_raw(w))),
+        "cay_update": (S._cay_update, lambda R, u: R + S._cay_increment_raw(R, u)),
     }
 
 
-@pytest.mark.parametrize("name", ["exp_increment", "expm1", "cay_increment"])
+@pytest.mark.parametrize(
+    "name", ["exp_increment", "expm1", "cay_increment", "exp_update", "cay_update"]
+)
 @pytest.mark.parametrize("dtype", [F64, F32])
 def test_group_update_derivatives_match_autodiff(name, dtype):
     """The hand-written jvp rules equal autodiff of the plain formulas, at every angle.
@@ -434,7 +438,7 @@ def test_group_update_derivative_matches_finite_differences():
     dR = jnp.asarray(rng.normal(size=(3, 3)))
     for w in (np.zeros(3), rng.normal(size=3), unit_vectors(rng, 1)[0] * (np.pi - 1e-3)):
         dw = rng.normal(size=3)
-        for f in (S._exp_increment, S._cay_increment):
+        for f in (S._exp_increment, S._cay_increment, S._exp_update, S._cay_update):
             _, t = jax.jvp(f, (R, jnp.asarray(w)), (dR, jnp.asarray(dw)))
             eps = 1e-6
             fd = (f(R + eps * dR, w + eps * dw) - f(R - eps * dR, w - eps * dw)) / (2 * eps)
