@@ -2,11 +2,23 @@
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
-from ._so3 import _cay_increment, _cay_update, _exp_increment, _exp_update
+from ._so3 import (
+    _cay_increment,
+    _cay_increment_raw,
+    _cay_update,
+    _cay_update_jvp,
+    _exp_increment,
+    _exp_increment_raw,
+    _exp_update,
+    _exp_update_jvp,
+)
 from ._types import Array, Float
 
 
@@ -55,6 +67,41 @@ def move(R: Array, u: Array, coords: str = "exp") -> Array:
     Its derivative is one closed-form rule for the whole update (`so3jax._so3._exp_update`).
     """
     return (_cay_update if coords == "cayley" else _exp_update)(R, u)
+
+
+def advance(y: LieState, u: Array, dx: Array, coords: str = "exp") -> LieState:
+    """``(R exp(u), x + dx)``: `retract` for the end of a step.
+
+    The same values and derivative rule (`move`'s); only the order in which a
+    program computes them differs: ``R exp(u) - R``, then ``x + dx``, then the sum
+    ``R + (R exp(u) - R)``, the order in which the scalarized forward programs
+    were tuned (computed in `retract`'s order, the seed's batched forward pass
+    over 256 runs took 1.03x to 1.06x longer: its fusion cuts group differently).
+    """
+    R1, x1 = _advance(y.R, u, y.x, dx, coords)
+    return LieState(R1, x1)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
+def _advance(R, u, x, dx, coords):
+    D = (_cay_increment_raw if coords == "cayley" else _exp_increment_raw)(R, u)
+    x1 = x + dx
+    return R + D, x1
+
+
+@functools.partial(_advance.defjvp, symbolic_zeros=True)
+def _advance_jvp(coords, primals, tangents):
+    R, u, x, dx = primals
+    dR, du, dxx, ddx = tangents
+    rule = _cay_update_jvp if coords == "cayley" else _exp_update_jvp
+    if isinstance(dR, SymbolicZero) and isinstance(du, SymbolicZero):
+        R1, dR1 = move(R, u, coords), jnp.zeros_like(R)
+    else:
+        R1, dR1 = rule((R, u), (dR, du))
+    parts = [t for t in (dxx, ddx) if not isinstance(t, SymbolicZero)]
+    x1 = x + dx
+    dx1 = functools.reduce(jnp.add, parts) if parts else jnp.zeros_like(x1)
+    return (R1, x1), (dR1, jnp.broadcast_to(dx1, x1.shape).astype(x1.dtype))
 
 
 def increment(R: Array, u: Array, coords: str = "exp") -> Array:

@@ -21,7 +21,7 @@ import numpy as np
 
 from .._scalarize import array_cut, array_cut_index, derivative_cut
 from .._so3 import _D_SERIES, _cross, _dcayinv, _dexpinv, _dot, _polyval
-from .._state import LieState, increment, move, retract
+from .._state import LieState, advance, increment, retract
 from ._base import AbstractLieSolver, ButcherTableau, lincomb
 
 
@@ -180,23 +180,23 @@ class RKMK(AbstractLieSolver):
         return self.tableau.order
 
     def step(self, scene, t, y, h):
-        u, x1 = self._update(scene, t, y, h)
-        return LieState(move(y.R, u, self.coords), x1), jnp.array(False)
+        u, dx = self._update(scene, t, y, h)
+        return advance(y, u, dx, self.coords), jnp.array(False)
 
     def _weights(self):
         return self.tableau.b
 
     def _update(self, scene, t, y, h):
-        """The step's algebra element ``u`` (``R1 = R0 exp(u)``) and vector part."""
+        """The step's algebra element ``u`` (``R1 = R0 exp(u)``) and the change of ``y.x``."""
         kts, dxs = rkmk_stages(
             self.tableau, self.dexpinv == "exact", scene, t, y, h, coords=self.coords
         )
         b = self._weights()
-        return lincomb(b, kts, h), y.x + lincomb(b, dxs, h)
+        return lincomb(b, kts, h), lincomb(b, dxs, h)
 
     def increment(self, scene, t, y, h):
-        u, x1 = self._update(scene, t, y, h)
-        return increment(y.R, u, self.coords), x1, jnp.array(False)
+        u, dx = self._update(scene, t, y, h)
+        return increment(y.R, u, self.coords), y.x + dx, jnp.array(False)
 
 
 F = lambda *xs: tuple(xs)  # noqa: E731  (short rows for the tableaus below)
