@@ -697,6 +697,45 @@ def test_scalarized_jacobian_without_cuts(monkeypatch):
     assert _rel(_jit_grad(cost("auto"))(K0), ref) < 1e-10
 
 
+def test_scalarized_jacobian_of_trajectories():
+    """The scalarized one-pass Jacobian (32 runs) of a cost on whole trajectories: each
+    saved point has many components (``R``, ``Omega``, ``Rd``, ``M``, ``e_R``,
+    ``e_Omega``), whose values and columns come from one ``jvp`` of the observation.
+    ``jacfwd`` and ``grad`` equal JAX's autodiff, and the value equals the forward run."""
+    B = _engine.batched_layout("jacobian")[1]
+    sc0 = _seed()
+    R0, W0 = s.initial_states(jax.random.PRNGKey(6), B)
+
+    def cost(program):
+        def f(k):
+            sc = with_gains(sc0, k[0], k[1])
+
+            def one(R, W):
+                sc1, R1 = with_start(sc, R, W)
+                tr = _simulate(
+                    sc1, SEED_METHOD, jnp.asarray(DT), jnp.asarray(0.0), N - 2, 1, program, R0=R1
+                )
+                ex = tr.extras
+                return (
+                    jnp.sum(tr.Omega**2)
+                    + jnp.sum(jnp.sin(tr.M))
+                    + jnp.sum(tr.R * tr.Rd)
+                    + jnp.sum(ex["e_R"] * ex["e_Omega"])
+                )
+
+            return jnp.mean(jax.vmap(one)(R0, W0))
+
+        return f
+
+    ref = _jit_grad(cost("autodiff"))(K0)
+    jf = jax.jit(jax.jacfwd(cost("auto")))
+    assert "conditional(" in jf.lower(K0).compile().as_text()  # scalarized, with cuts
+    assert _rel(jf(K0), ref) < 1e-10
+    assert _rel(_jit_grad(cost("auto"))(K0), ref) < 1e-10
+    value, _ = jax.jit(lambda k: jax.jvp(cost("auto"), (k,), (jnp.ones(2),)))(K0)
+    assert _rel(value, jax.jit(cost("array"))(K0)) < 1e-12
+
+
 def test_one_pass_jacobian_through_gains_and_initial_rates(monkeypatch):
     """A few inputs (2 gains + 3 initial rates): value and derivatives from one pass.
 
