@@ -984,10 +984,6 @@ class _Loop:
         return P, c1, dP, dc1
 
     def _tobs(self, mP, mc, x):
-        return self._obs_jvp(mP, mc, x)[1]
-
-    def _obs_jvp(self, mP, mc, x):
-        """The observation and its tangent, from one ``jvp``."""
         P, c, dP, dc = x
         pf, cf = _floats(P), _floats(c)
 
@@ -995,7 +991,7 @@ class _Loop:
             Pp = _with_floats(P, _fill(mP, Pm, pf))
             return self.observe(Pp, _with_floats(c, _fill(mc, cm, cf)))
 
-        return jax.jvp(o, (_pick(mP, pf), _pick(mc, cf)), (list(dP), list(dc)))
+        return jax.jvp(o, (_pick(mP, pf), _pick(mc, cf)), (list(dP), list(dc)))[1]
 
     def tan_array(self, mP, mc, P, c0, dP, dc0):
         step = functools.partial(self._tstep, mP, mc)
@@ -1023,13 +1019,12 @@ class _Loop:
         over it. Returns ``(ys, cN, dys, dcN)`` with a column axis after the
         saved-point axis of ``dys`` and in front of ``dcN``.
         """
-        # The observation's value comes from the jvp that gives its columns (one
-        # observation computed, not two: `jac_scalar`).
-        ojvp = functools.partial(self._obs_jvp, mP, mc)
+        tobs = functools.partial(self._tobs, mP, mc)
 
         def observe(x):
             P, c, dP, dc = x
-            return jax.vmap(lambda dP, dc: ojvp((P, c, dP, dc)), out_axes=(None, 0))(dP, dc)
+            cols = jax.vmap(lambda dP, dc: tobs((P, c, dP, dc)))
+            return self.observe(P, c), cols(dP, dc)
 
         body = functools.partial(self._jac_body, mP, mc)
         x, (ys, dys) = self._save_loop(body, observe, (P, c0, dP, dc0))
@@ -1054,23 +1049,16 @@ class _Loop:
         col = jax.tree.map(lambda a: a[0], (dP, dc0))  # one column: the example
         ex = (P, c0) + col
         body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut)
-        # The observation's value and columns from one jvp: with the value a program of
-        # its own, the B = 256 seed Jacobian computed the observation twice (its fusion
-        # cuts kept XLA from merging the two), 1.0Nx slower (2026-11-27).
-        ojvp, (obs_struct, tobs_struct) = sc.flat_program(
-            functools.partial(self._obs_jvp, mP, mc), ex, cut
-        )
+        tobs, tobs_struct = sc.flat_program(functools.partial(self._tobs, mP, mc), ex, cut)
+        obs, obs_struct = sc.flat_program(lambda x: self.observe(x[0], x[1]), ex, cut)
         n_primal = len(sc.split((P, c0)))
         n_tangent = sum(math.prod(jnp.shape(a)) for a in jax.tree.leaves(col))
         axes = [None] * n_primal + [0] * n_tangent
-        n_obs = sum(math.prod(a.shape) for a in jax.tree.leaves(obs_struct))
-        n_tobs = sum(math.prod(a.shape) for a in jax.tree.leaves(tobs_struct))
         vbody = jax.vmap(body, in_axes=(axes,), out_axes=axes)
-        vojvp = jax.vmap(ojvp, in_axes=(axes,), out_axes=[None] * n_obs + [0] * n_tobs)
+        vtobs = jax.vmap(tobs, in_axes=(axes,))
 
         def observe(flat):
-            out = vojvp(flat)
-            return out[:n_obs], out[n_obs:]
+            return obs(flat), vtobs(flat)
 
         flat0 = sc.split((P, c0)) + jax.vmap(sc.split)((dP, dc0))
         if batched is not None:  # a column's components: the body's example

@@ -700,8 +700,8 @@ def test_scalarized_jacobian_without_cuts(monkeypatch):
 def test_scalarized_jacobian_of_trajectories():
     """The scalarized one-pass Jacobian (32 runs) of a cost on whole trajectories: each
     saved point has many components (``R``, ``Omega``, ``Rd``, ``M``, ``e_R``,
-    ``e_Omega``), whose values and columns come from one ``jvp`` of the observation.
-    ``jacfwd`` and ``grad`` equal JAX's autodiff, and the value equals the forward run."""
+    ``e_Omega``), values and columns. ``jacfwd`` and ``grad`` equal JAX's autodiff, and
+    the value equals the forward run."""
     B = _engine.batched_layout("jacobian")[1]
     sc0 = _seed()
     R0, W0 = s.initial_states(jax.random.PRNGKey(6), B)
