@@ -76,7 +76,7 @@ def advance(y: LieState, u: Array, dx: Array, coords: str = "exp") -> LieState:
     program computes them differs: ``R exp(u) - R``, then ``x + dx``, then the sum
     ``R + (R exp(u) - R)``, the order in which the scalarized forward programs
     were tuned (computed in `retract`'s order, the seed's batched forward pass
-    over 256 runs took 1.03x to 1.06x longer: its fusion cuts group differently).
+    over 256 runs took 1.02x to 1.06x longer: its fusion cuts group differently).
     """
     R1, x1 = _advance(y.R, u, y.x, dx, coords)
     return LieState(R1, x1)
