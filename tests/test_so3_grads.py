@@ -443,3 +443,46 @@ def test_group_update_derivative_matches_finite_differences():
             eps = 1e-6
             fd = (f(R + eps * dR, w + eps * dw) - f(R - eps * dR, w - eps * dw)) / (2 * eps)
             np.testing.assert_allclose(t, fd, atol=1e-8)
+
+
+@pytest.mark.parametrize("coords", ["exp", "cayley"])
+def test_step_end_derivative_matches_autodiff(coords):
+    """`_state.advance` (the end of an RKMK step: the update's rule beside ``x + dx``)
+    equals autodiff of the plain formulas: all tangents, only the vector part's (the
+    group's a symbolic zero), only the group's, reverse mode and second order."""
+    from so3jax import _so3 as S, _state
+
+    raw = S._cay_increment_raw if coords == "cayley" else (lambda R, w: S._mm(R, S._expm1_raw(w)))
+    rng = np.random.default_rng(5)
+    n = 4
+    R = jnp.asarray(Rotation.random(n, random_state=rng).as_matrix())[:, None]  # k = 1 group
+    u = jnp.asarray(unit_vectors(rng, n) * np.array([0.0, 1e-9, 0.4, 2.5])[:, None])[:, None]
+    x, dx = jnp.asarray(rng.normal(size=(n, 3))), jnp.asarray(rng.normal(size=(n, 3)))
+    t = [jnp.asarray(rng.normal(size=a.shape)) for a in (R, u, x, dx)]
+
+    def closed(R, u, x, dx):
+        y = _state.advance(_state.LieState(R, x), u, dx, coords)
+        return y.R, y.x
+
+    def plain(R, u, x, dx):
+        return R + raw(R, u), x + dx
+
+    def checks(f):
+        out = [
+            jax.jvp(f, (R, u, x, dx), tuple(t)),
+            jax.jvp(lambda x, dx: f(R, u, x, dx), (x, dx), (t[2], t[3])),
+            jax.jvp(lambda R, u: f(R, u, x, dx), (R, u), (t[0], t[1])),
+        ]
+
+        def scalar(R, u, x, dx):
+            a, b = f(R, u, x, dx)
+            return weighted_sum(a) + weighted_sum(b, seed=1)
+
+        out.append(jax.grad(scalar, argnums=(0, 1, 2, 3))(R, u, x, dx))
+        g = jax.grad(scalar, argnums=(0, 1))
+        out.append(jax.jvp(lambda R, u: g(R, u, x, dx), (R, u), (t[0], t[1]))[1])
+        return out
+
+    got, want = jax.jit(lambda: (checks(closed), checks(plain)))()
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
