@@ -931,3 +931,83 @@ def test_array_programs_cut_where_xla_would_recompute(monkeypatch, count_cuts):
 def _one_cost(scene, k, R0, method):
     sc_k, R = with_start(with_gains(scene, k[0], k[1]), R0, jnp.zeros(3))
     return jnp.sum(s.simulate(sc_k, method, DT, 4, 2, R0=R).Omega ** 2)
+
+
+def _compiled_text(f, *args) -> str:
+    return jax.jit(f).lower(*args).compile().as_text()
+
+
+@pytest.mark.parametrize("runs", [1, 40])
+def test_hoisted_loops_equal_the_default_runtime(runs, monkeypatch):
+    """Loops compiled as one kernel (`_engine._hoisted`) give XLA's default runtime's
+    numbers: a single run (array program) and 40 runs (scalarized), forward pass,
+    ``grad`` and ``jacfwd`` (the one-pass Jacobian program), in one process."""
+    R0, W0 = s.initial_states(jax.random.key(3), runs)
+    sc0 = _seed()
+
+    def cost(k):
+        sc = with_gains(sc0, k[0], k[1])
+
+        def one(R, W):
+            scR, R = with_start(sc, R, W)
+            dt, t0 = jnp.asarray(DT), jnp.asarray(0.0)
+            tr = _simulate(scR, s.RKMK4(), dt, t0, N, 1, "auto", R0=R)
+            return jnp.sum(tr.Omega**2) + jnp.sum(tr.R[-1] * tr.Rd[-1])
+
+        return jnp.mean(jax.vmap(one)(R0, W0)) if runs > 1 else one(R0[0], W0[0])
+
+    k = jnp.array([8.81, 2.54])
+    out = {}
+    for hoist in (True, False):
+        monkeypatch.setattr(_engine, "HOIST_LOOPS", hoist)
+        jax.clear_caches()  # the choice is made when a program is traced
+        out[hoist] = {}
+        fns = {"value": cost, "grad": jax.grad(cost)}
+        if runs == 1:  # (40 runs: the same Jacobian program as ``grad``)
+            fns["jacfwd"] = jax.jacfwd(cost)
+        for name, f in fns.items():
+            compiled = jax.jit(f).lower(k).compile()
+            assert ('xla_cpu_small_call="true"' in compiled.as_text()) == hoist
+            out[hoist][name] = np.asarray(compiled(k))
+    for name in out[True]:
+        np.testing.assert_allclose(out[True][name], out[False][name], rtol=1e-12, atol=0)
+    jax.clear_caches()
+
+
+def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
+    """No hoisting for a loop with a dot (XLA's older emitter refuses it), nor for one
+    whose batch exceeds `HOIST_MAX_BYTES`; closed-over constants larger than the older
+    emitter takes (12 kB here) reach a hoisted loop as arguments, with the same numbers."""
+
+    def step(P, c):
+        A, b = P
+        return jnp.tanh(A @ c + b)
+
+    def loop(step, P, c0):
+        return _engine.run(step, lambda P, c: c, P, c0, 5)[0]
+
+    # 20 runs: the array program, vmapped (its dot stays a dot), over the 1 kB under
+    # which XLA hoists a loop itself (``xla_cpu_small_while_loop_byte_threshold``).
+    A, bs = jnp.eye(3) * 0.5, jnp.zeros((20, 3))
+    text = _compiled_text(jax.vmap(lambda b: loop(step, (A, b), jnp.ones(3))), bs)
+    assert "xla_cpu_small_call" not in text
+    elementwise = lambda P, c: jnp.tanh(P[0] * c + P[1])
+    text = _compiled_text(jax.vmap(lambda b: loop(elementwise, (0.5, b), jnp.ones(3))), bs)
+    assert 'xla_cpu_small_call="true"' in text
+
+    monkeypatch.setattr(_engine, "HOIST_MAX_BYTES", 1000)  # 200 float64 runs: over
+    batch = jax.vmap(lambda b: loop(elementwise, (0.5, b), jnp.ones(3)))
+    assert "xla_cpu_small_call" not in _compiled_text(batch, jnp.zeros((200, 3)))
+    assert 'xla_cpu_small_call="true"' in _compiled_text(batch, jnp.zeros((100, 3)))
+    monkeypatch.undo()
+
+    starts = jnp.asarray(np.random.default_rng(0).normal(size=(1500, 3)))  # 12 kB a leaf
+    runs = lambda b: jax.vmap(lambda c: loop(elementwise, (0.5, b), c))(starts)
+    text = _compiled_text(runs, jnp.float64(0.1))
+    assert 'xla_cpu_small_call="true"' in text
+    got = jax.jit(runs)(jnp.float64(0.1))
+    c, want = starts, []
+    for _ in range(5):
+        c = jnp.tanh(0.5 * c + 0.1)
+        want.append(c)
+    np.testing.assert_allclose(got, jnp.stack(want, 1), rtol=1e-14)
