@@ -24,6 +24,12 @@ is, with no flag for the user to know:
   rule also hands the program an unbatched index
   (`so3jax._scalarize.cut_index`) with which it cuts fusion where XLA would
   recompute shared values once per consumer (`so3jax._scalarize.fusion_cut`);
+- **every loop, on a CPU**, compiles as one kernel (`_hoisted`): XLA's runtime
+  otherwise dispatches each fused kernel of a step on its own and hands them between
+  the threads of its pool (S46: the seed's batched forward pass over 256 runs
+  2.8x faster, a single run 4x). Loops with a dot or another primitive XLA's older
+  emitter refuses, batches whose largest leaf exceeds `HOIST_MAX_BYTES`, sharded
+  programs and second derivatives' programs run as before;
 - **a differentiated run** hangs its derivatives on one ``jax.custom_jvp``.
   Through at most `FORWARD_JACOBIAN_MAX` differentiated scalars (two gains,
   six per-axis gains, gains and initial rates) the run computes its value and
@@ -87,6 +93,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
+import os
 import warnings
 from collections.abc import Callable
 
@@ -749,9 +756,8 @@ class _Traced:
         def one_run(one, *a):
             return self._eval(jax.tree.leaves(a), flags, one)
 
-        one = jnp.zeros((axis_size,), jnp.int32)
-        with _batch_of(axis_size):
-            return jax.vmap(one_run, in_axes=(0, *axes))(one, *args)
+        one = jnp.zeros((axis_size,), jnp.int32)  # (the caller, `_dual_of`, sets `_batch_of`)
+        return jax.vmap(one_run, in_axes=(0, *axes))(one, *args)
 
     def _eval(self, leaves: list, flags: list | None, one):
         jaxpr = self.closed.jaxpr
@@ -905,14 +911,18 @@ def _component_flags(example, batched) -> list:
 SCAN_UNROLL = 1
 
 #: Run the engine's loops as one kernel each on a CPU (`_hoisted`). ``False`` gives
-#: XLA's default: one kernel per fusion, handed between the threads of its pool.
-HOIST_LOOPS = True
+#: XLA's default: one kernel per fusion, handed between the threads of its pool. The
+#: environment variable ``SO3JAX_HOIST_LOOPS=0`` (read at import) turns it off, should
+#: XLA's older emitter refuse a loop of some scene (a compile error naming a fusion kind).
+HOIST_LOOPS = os.environ.get("SO3JAX_HOIST_LOOPS", "1") != "0"
 
 #: The largest input leaf of a hoisted loop, in bytes, over the runs of a batch: one
 #: kernel gives up XLA's threads, which pay for large batches. Seed forward pass,
 #: 2-core CPU (2026-11-27), hoisted against not: float64, 8192 runs (64 kB a leaf)
 #: 922 against 1336 ms; 16384 runs 528 against 471 ms; 65536 runs 1980 against 1062
 #: ms; float32, 16384 runs (64 kB) 183 against 250 ms; 65536 runs 813 against 459 ms.
+#: Under nested ``vmap`` (gains x attitudes by hand) only the innermost batch that
+#: reaches the engine's batching rule counts: `so3jax.sweep` runs one flat batch per chunk.
 HOIST_MAX_BYTES = 64 * 1024
 
 #: Runs in the batch being traced (`_batch_of`): a vmapped program sees one run's shapes.
@@ -962,12 +972,23 @@ def _subjaxprs(params) -> list:
     return out
 
 
-def _hoistable(jaxpr) -> bool:
-    """Whether every equation of ``jaxpr`` (nested ones too) is in `_HOISTABLE`."""
+#: The most elements a reduction in a hoisted loop may read, over the batch. Past 1024,
+#: XLA fuses a reduction into a kind of kernel its older emitter does not implement
+#: ("Fusion kind not implemented on CPU"): the array program's 3x3 products, sums over
+#: ``(B, 3, 3, 3)`` arrays, compiled hoisted for 37 runs and failed for 38 (2026-11-27).
+HOIST_MAX_REDUCED = 1024
+
+
+def _hoistable(jaxpr, batch: int = 1) -> bool:
+    """Whether every equation of ``jaxpr`` (nested ones too) is in `_HOISTABLE`, with no
+    reduction over more than `HOIST_MAX_REDUCED` elements in a batch of ``batch`` runs."""
     for e in jaxpr.eqns:
         if e.primitive.name not in _HOISTABLE:
             return False
-        if not all(_hoistable(j) for j in _subjaxprs(e.params)):
+        if e.primitive.name.startswith("reduce_") and e.primitive.name != "reduce_precision":
+            if math.prod(e.invars[0].aval.shape) * batch > HOIST_MAX_REDUCED:
+                return False
+        if not all(_hoistable(j, batch) for j in _subjaxprs(e.params)):
             return False
     return True
 
@@ -987,7 +1008,8 @@ def _hoisted(loop: Callable, *args):
     The loop's inputs pass an `optimization_barrier` first: XLA otherwise sinks
     constant operands (a batch of starts closed over as a constant) into the call,
     and the older emitter aborts on constants of more than about 10 kB. Loops with
-    a primitive outside `_HOISTABLE`, loops whose largest input leaf takes more than
+    a primitive outside `_HOISTABLE` or a reduction over more than `HOIST_MAX_REDUCED`
+    elements, loops whose largest input leaf takes more than
     `HOIST_MAX_BYTES` over the batch, every loop off a CPU, and every loop where JAX
     sees more than one device run as before: XLA partitions a sharded program after
     this choice, and a hoisted loop then calls collectives the older emitter cannot
@@ -1000,7 +1022,7 @@ def _hoisted(loop: Callable, *args):
     if per_run * _BATCH[-1] > HOIST_MAX_BYTES:
         return loop(*args)
     closed, shape = jax.make_jaxpr(loop, return_shape=True)(*args)
-    if not _hoistable(closed.jaxpr):  # run the traced loop (tracing it again costs more)
+    if not _hoistable(closed.jaxpr, _BATCH[-1]):  # run the traced loop (not trace it again)
         outs = jex_core.jaxpr_as_fun(closed)(*leaves)
         return jax.tree.unflatten(jax.tree.structure(shape), outs)
     consts, leaves = jax.lax.optimization_barrier((list(closed.consts), leaves))

@@ -6,6 +6,9 @@ differences, and Python loops over single runs.
 """
 
 import functools
+import os
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -975,8 +978,9 @@ def test_hoisted_loops_equal_the_default_runtime(runs, monkeypatch):
 
 
 def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
-    """No hoisting for a loop with a dot (XLA's older emitter refuses it), nor for one
-    whose batch exceeds `HOIST_MAX_BYTES`; closed-over constants larger than the older
+    """No hoisting for a loop with a dot (XLA's older emitter refuses it), nor with a
+    reduction over more than 1024 elements, nor for one whose batch exceeds
+    `HOIST_MAX_BYTES`; closed-over constants larger than the older
     emitter takes (12 kB here) reach a hoisted loop as arguments, with the same numbers."""
 
     def step(P, c):
@@ -995,6 +999,23 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
     text = _compiled_text(jax.vmap(lambda b: loop(elementwise, (0.5, b), jnp.ones(3))), bs)
     assert 'xla_cpu_small_call="true"' in text
 
+    # A reduction over more than HOIST_MAX_REDUCED elements of the batch: XLA would make
+    # it a kernel the older emitter lacks ("Fusion kind not implemented on CPU").
+    def matmul(P, c):  # c: (6, 6); the product as _so3._mm forms it, a sum of products
+        return jnp.tanh(jnp.sum(P[0][:, :, None] * c[None, :, :], axis=1) + P[1])
+
+    A6 = jnp.eye(6) * 0.5
+    for runs, hoisted in ((4, True), (5, False)):  # 216 elements reduced a run
+        f = jax.vmap(lambda b: loop(matmul, (A6, b), jnp.eye(6)))
+        text = _compiled_text(f, jnp.zeros((runs, 6, 6)))
+        assert ('xla_cpu_small_call="true"' in text) == hoisted
+        got = jax.jit(f)(jnp.full((runs, 6, 6), 0.1))
+        c, want = jnp.eye(6), []
+        for _ in range(5):
+            c = jnp.tanh(A6 @ c + 0.1)
+            want.append(c)
+        np.testing.assert_allclose(got, jnp.broadcast_to(jnp.stack(want), got.shape), rtol=1e-14)
+
     monkeypatch.setattr(_engine, "HOIST_MAX_BYTES", 1000)  # 200 float64 runs: over
     batch = jax.vmap(lambda b: loop(elementwise, (0.5, b), jnp.ones(3)))
     assert "xla_cpu_small_call" not in _compiled_text(batch, jnp.zeros((200, 3)))
@@ -1011,3 +1032,12 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
         c = jnp.tanh(0.5 * c + 0.1)
         want.append(c)
     np.testing.assert_allclose(got, jnp.stack(want, 1), rtol=1e-14)
+
+
+def test_hoisting_can_be_turned_off_from_the_environment():
+    """``SO3JAX_HOIST_LOOPS=0``: the way out should XLA's older emitter refuse a loop."""
+    code = "import so3jax._engine as e; print(e.HOIST_LOOPS)"
+    for value, want in (("0", "False"), ("1", "True")):
+        env = dict(os.environ, SO3JAX_HOIST_LOOPS=value, JAX_PLATFORMS="cpu")
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+        assert out.stdout.strip() == want, out.stderr
