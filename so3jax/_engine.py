@@ -102,10 +102,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
 from jax.custom_derivatives import SymbolicZero, linear_call
-from jax.experimental.xla_metadata import set_xla_metadata
 from jax.extend import core as jex_core
 
 from . import _scalarize as sc
+
+try:  # frontend attributes on the ops traced inside (`_hoisted`)
+    from jax.experimental.xla_metadata import set_xla_metadata
+except ImportError:  # an older JAX: loops run as XLA compiles them by default
+    set_xla_metadata = None
 
 __all__ = ["run", "checkpoint_length"]
 
@@ -1015,7 +1019,9 @@ def _hoisted(loop: Callable, *args):
     this choice, and a hoisted loop then calls collectives the older emitter cannot
     link (``__xla_cpu_runtime_AllReduce``, ``__xla_cpu_runtime_PartitionId``).
     """
-    if not HOIST_LOOPS or jax.default_backend() != "cpu" or jax.device_count() > 1:
+    if set_xla_metadata is None or not HOIST_LOOPS:
+        return loop(*args)
+    if jax.default_backend() != "cpu" or jax.device_count() > 1:
         return loop(*args)
     leaves = jax.tree.leaves(args)
     per_run = max((jnp.size(x) * jnp.result_type(x).itemsize for x in leaves), default=0)
