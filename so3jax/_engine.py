@@ -27,9 +27,10 @@ is, with no flag for the user to know:
 - **every loop, on a CPU**, compiles as one kernel (`_hoisted`): XLA's runtime
   otherwise dispatches each fused kernel of a step on its own and hands them between
   the threads of its pool (S46: the seed's batched forward pass over 256 runs
-  2.8x faster, a single run 4x). Loops with a dot or another primitive XLA's older
-  emitter refuses, batches whose largest leaf exceeds `HOIST_MAX_BYTES`, sharded
-  programs and second derivatives' programs run as before;
+  2.9x faster, a single run 3.3x to 3.7x, a gradient over 256 runs 2.35x). Loops
+  with a dot or another primitive XLA's older emitter refuses, batches whose largest
+  leaf exceeds `HOIST_MAX_BYTES`, sharded programs and second derivatives' programs
+  run as before (``SO3JAX_HOIST_LOOPS=0`` turns it off);
 - **a differentiated run** hangs its derivatives on one ``jax.custom_jvp``.
   Through at most `FORWARD_JACOBIAN_MAX` differentiated scalars (two gains,
   six per-axis gains, gains and initial rates) the run computes its value and
@@ -1006,8 +1007,8 @@ def _hoisted(loop: Callable, *args):
     tagged ``xla_cpu_small_call`` (and kept from inlining) is compiled whole into
     one function by XLA's older CPU emitter, as XLA's own small-loop pass does
     for loops under 1 kB (``xla_cpu_small_while_loop_byte_threshold``, a process
-    flag). The seed's forward pass over 256 starts took 20 against 52 ms that way,
-    a single run 0.74 against 3.0 ms (2026-11-27, this 2-core CPU).
+    flag). The seed's forward pass over 256 starts took 19.3-19.5 against 55.7-57.3 ms
+    that way, a single run 0.80-0.88 against 2.94-2.97 ms (2026-11-27, 2-core CPU).
 
     The loop's inputs pass an `optimization_barrier` first: XLA otherwise sinks
     constant operands (a batch of starts closed over as a constant) into the call,
