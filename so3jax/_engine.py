@@ -495,7 +495,7 @@ def _dual(
 
     @jax.custom_jvp
     def call(*args):
-        with _batch_of(_NO_HOIST if what == "jvp" else 1):
+        with _batch_of(_NO_HOIST if what == "jvp" else 1), _reducing(what):
             closed, shape = jax.make_jaxpr(array_fn, return_shape=True)(*args)
             traced = _Traced(closed, jax.tree.structure(shape))
             return _dual_of(traced, scalar_fn, what, columns)(*args)
@@ -814,7 +814,7 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
 
     @fn.def_vmap
     def _rule(axis_size, in_batched, *args):
-        with _batch_of(_NO_HOIST if what == "jvp" else axis_size):
+        with _batch_of(_NO_HOIST if what == "jvp" else axis_size), _reducing(what):
             return _batched_rule(axis_size, in_batched, *args)
 
     def _batched_rule(axis_size, in_batched, *args):
@@ -950,17 +950,36 @@ def _batch_of(n: int):
         _BATCH.pop()
 
 
+#: Whether the programs being traced may hoist loops with reductions (`_reducing`).
+_REDUCE_OK = [True]
+
+
+@contextlib.contextmanager
+def _reducing(what: str):
+    """Trace program ``what``: only forward runs hoist loops with reductions. A derivative
+    program's loop can be batched again after `_hoisted` chose, by a ``vmap`` around a
+    derivative JAX staged (no Python of ours runs then), and its reductions then grow past
+    `HOIST_MAX_REDUCED`: ``vmap`` of ``grad`` over 5 gain sets of the mean cost over 16
+    starts failed to compile so ("Fusion kind not implemented on CPU"). A forward run is
+    batched through its own ``custom_vmap`` rule, which sizes it again."""
+    _REDUCE_OK.append(what in ("run", "scalar", "array"))
+    try:
+        yield
+    finally:
+        _REDUCE_OK.pop()
+
+
 #: Primitives a hoisted loop may hold. XLA compiles the loop with its older CPU
 #: emitter, which refuses dots, convolutions, scatters and custom calls (linear
 #: algebra, callbacks, sorting, FFTs): a loop with anything not listed runs as before.
 _HOISTABLE = frozenset(
     """abs acos acosh add add_any and asin asinh atan atan2 atanh broadcast_in_dim cbrt ceil
-    clamp closed_call concatenate cond convert_element_type copy copy_p cos cosh
-    custom_jvp_call custom_vjp_call custom_vjp_call_jaxpr custom_vmap_call div dynamic_slice
-    dynamic_update_slice eq erf erf_inv erfc exp exp2 expm1 expand_dims floor ge gt
-    integer_pow iota is_finite jit le log log1p logistic lt max min mul ne neg
+    checkpoint clamp closed_call concatenate cond convert_element_type copy copy_p cos
+    cosh custom_jvp_call custom_vjp_call custom_vjp_call_jaxpr custom_vmap_call div
+    dynamic_slice dynamic_update_slice eq erf erf_inv erfc exp exp2 expm1 expand_dims floor
+    ge gt integer_pow iota is_finite jit le log log1p logistic lt max min mul ne neg
     nextafter not optimization_barrier or pjit pow reduce_and reduce_max reduce_min
-    reduce_or reduce_precision reduce_prod reduce_sum rem reshape rev round rsqrt scan
+    reduce_or reduce_precision reduce_prod reduce_sum rem remat2 reshape rev round rsqrt scan
     select_n sign sin sinh slice sqrt square squeeze stack stop_gradient sub tan tanh
     transpose unstack while xor""".split()
 )
@@ -991,7 +1010,7 @@ def _hoistable(jaxpr, batch: int = 1) -> bool:
         if e.primitive.name not in _HOISTABLE:
             return False
         if e.primitive.name.startswith("reduce_") and e.primitive.name != "reduce_precision":
-            if math.prod(e.invars[0].aval.shape) * batch > HOIST_MAX_REDUCED:
+            if not _REDUCE_OK[-1] or math.prod(e.invars[0].aval.shape) * batch > HOIST_MAX_REDUCED:
                 return False
         if not all(_hoistable(j, batch) for j in _subjaxprs(e.params)):
             return False
