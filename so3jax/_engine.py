@@ -27,10 +27,11 @@ is, with no flag for the user to know:
 - **every loop, on a CPU**, compiles as one kernel (`_hoisted`): XLA's runtime
   otherwise dispatches each fused kernel of a step on its own and hands them between
   the threads of its pool (S46: the seed's batched forward pass over 256 runs
-  2.9x faster, a single run 3.3x to 3.7x, a gradient over 256 runs 2.35x). Loops
+  2.9x faster, a single run 3.5x to 3.75x, a gradient over 256 runs 2.5x). Loops
   with a dot or another primitive XLA's older emitter refuses, batches whose largest
-  leaf exceeds `HOIST_MAX_BYTES`, sharded programs and second derivatives' programs
-  run as before (``SO3JAX_HOIST_LOOPS=0`` turns it off);
+  leaf exceeds `HOIST_MAX_BYTES`, derivative programs with reductions (the array
+  layout's), sharded programs and second derivatives' programs run as before
+  (``SO3JAX_HOIST_LOOPS=0`` turns it off);
 - **a differentiated run** hangs its derivatives on one ``jax.custom_jvp``.
   Through at most `FORWARD_JACOBIAN_MAX` differentiated scalars (two gains,
   six per-axis gains, gains and initial rates) the run computes its value and
