@@ -496,7 +496,7 @@ def _dual(
 
     @jax.custom_jvp
     def call(*args):
-        with _batch_of(_NO_HOIST if what == "jvp" else 1), _reducing(what):
+        with _tracing(what):
             closed, shape = jax.make_jaxpr(array_fn, return_shape=True)(*args)
             traced = _Traced(closed, jax.tree.structure(shape))
             return _dual_of(traced, scalar_fn, what, columns)(*args)
@@ -762,7 +762,7 @@ class _Traced:
         def one_run(one, *a):
             return self._eval(jax.tree.leaves(a), flags, one)
 
-        one = jnp.zeros((axis_size,), jnp.int32)  # (the caller, `_dual_of`, sets `_batch_of`)
+        one = jnp.zeros((axis_size,), jnp.int32)  # (the caller, `_dual_of`, sets `_tracing`)
         return jax.vmap(one_run, in_axes=(0, *axes))(one, *args)
 
     def _eval(self, leaves: list, flags: list | None, one):
@@ -815,7 +815,7 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
 
     @fn.def_vmap
     def _rule(axis_size, in_batched, *args):
-        with _batch_of(_NO_HOIST if what == "jvp" else axis_size), _reducing(what):
+        with _tracing(what, axis_size):
             return _batched_rule(axis_size, in_batched, *args)
 
     def _batched_rule(axis_size, in_batched, *args):
@@ -931,43 +931,33 @@ HOIST_LOOPS = os.environ.get("SO3JAX_HOIST_LOOPS", "1") != "0"
 #: reaches the engine's batching rule counts: `so3jax.sweep` runs one flat batch per chunk.
 HOIST_MAX_BYTES = 64 * 1024
 
-#: Runs in the batch being traced (`_batch_of`): a vmapped program sees one run's shapes.
-_BATCH = [1]
-
-#: A batch no loop is hoisted in: the derivatives of the engine's programs (the
-#: ``"jvp"`` programs of second derivatives, `_dual_jvp`). Hoisted, ``jax.hessian`` of
-#: the seed's mean cost over 16 starts ran in 78 against 157 ms but compiled in 19.4
-#: against 8.3 s (38.0 against 16.6 s over 256 starts, 418 against 645 ms a call).
-_NO_HOIST = 2**62
+#: What is being traced, innermost last (`_tracing`): the runs in its batch (a vmapped
+#: program sees one run's shapes), whether its loops may be hoisted, and whether loops
+#: with reductions may.
+_TRACING = [(1, True, True)]
 
 
 @contextlib.contextmanager
-def _batch_of(n: int):
-    """Trace inside a batch of ``n`` runs (`_hoisted` sizes its loops by it)."""
-    _BATCH.append(_BATCH[-1] * int(n))
+def _tracing(what: str, runs: int = 1):
+    """Trace program ``what`` (a `_dual`'s) in a batch of ``runs`` runs.
+
+    - Nothing is hoisted inside the ``"jvp"`` programs of second derivatives
+      (`_dual_jvp`), nor in what they trace. Hoisted, ``jax.hessian`` of the seed's mean
+      cost over 16 starts ran in 78 against 157 ms but compiled in 19.4 against 8.3 s
+      (38.0 against 16.6 s over 256 starts, 418 against 645 ms a call).
+    - Only forward runs hoist loops with reductions. A derivative program's loop can be
+      batched again after `_hoisted` chose, by a ``vmap`` around a derivative JAX staged
+      (no Python of ours runs then), and its reductions then grow past
+      `HOIST_MAX_REDUCED`: ``vmap`` of ``grad`` over 5 gain sets of the mean cost over
+      16 starts failed to compile so ("Fusion kind not implemented on CPU"). A forward
+      run is batched through its own ``custom_vmap`` rule, which sizes it again.
+    """
+    n, hoist, _ = _TRACING[-1]
+    _TRACING.append((n * int(runs), hoist and what != "jvp", what in ("run", "scalar", "array")))
     try:
         yield
     finally:
-        _BATCH.pop()
-
-
-#: Whether the programs being traced may hoist loops with reductions (`_reducing`).
-_REDUCE_OK = [True]
-
-
-@contextlib.contextmanager
-def _reducing(what: str):
-    """Trace program ``what``: only forward runs hoist loops with reductions. A derivative
-    program's loop can be batched again after `_hoisted` chose, by a ``vmap`` around a
-    derivative JAX staged (no Python of ours runs then), and its reductions then grow past
-    `HOIST_MAX_REDUCED`: ``vmap`` of ``grad`` over 5 gain sets of the mean cost over 16
-    starts failed to compile so ("Fusion kind not implemented on CPU"). A forward run is
-    batched through its own ``custom_vmap`` rule, which sizes it again."""
-    _REDUCE_OK.append(what in ("run", "scalar", "array"))
-    try:
-        yield
-    finally:
-        _REDUCE_OK.pop()
+        _TRACING.pop()
 
 
 #: Primitives a hoisted loop may hold. XLA compiles the loop with its older CPU
@@ -986,17 +976,6 @@ _HOISTABLE = frozenset(
 )
 
 
-def _subjaxprs(params) -> list:
-    out = []
-    for v in params.values():
-        for x in v if isinstance(v, (tuple, list)) else (v,):
-            if isinstance(x, jex_core.ClosedJaxpr):
-                out.append(x.jaxpr)
-            elif isinstance(x, jex_core.Jaxpr):
-                out.append(x)
-    return out
-
-
 #: The most elements a reduction in a hoisted loop may read, over the batch. Past 1024,
 #: XLA fuses a reduction into a kind of kernel its older emitter does not implement
 #: ("Fusion kind not implemented on CPU"): the array program's 3x3 products, sums over
@@ -1004,16 +983,17 @@ def _subjaxprs(params) -> list:
 HOIST_MAX_REDUCED = 1024
 
 
-def _hoistable(jaxpr, batch: int = 1) -> bool:
+def _hoistable(jaxpr, runs: int = 1, reductions: bool = True) -> bool:
     """Whether every equation of ``jaxpr`` (nested ones too) is in `_HOISTABLE`, with no
-    reduction over more than `HOIST_MAX_REDUCED` elements in a batch of ``batch`` runs."""
+    reduction (none at all without ``reductions``) over more than `HOIST_MAX_REDUCED`
+    elements in a batch of ``runs`` runs."""
     for e in jaxpr.eqns:
         if e.primitive.name not in _HOISTABLE:
             return False
         if e.primitive.name.startswith("reduce_") and e.primitive.name != "reduce_precision":
-            if not _REDUCE_OK[-1] or math.prod(e.invars[0].aval.shape) * batch > HOIST_MAX_REDUCED:
+            if not reductions or math.prod(e.invars[0].aval.shape) * runs > HOIST_MAX_REDUCED:
                 return False
-        if not all(_hoistable(j, batch) for j in _subjaxprs(e.params)):
+        if not all(_hoistable(j, runs, reductions) for j in sc.subjaxprs(e.params)):
             return False
     return True
 
@@ -1035,21 +1015,23 @@ def _hoisted(loop: Callable, *args):
     and the older emitter aborts on constants of more than about 10 kB. Loops with
     a primitive outside `_HOISTABLE` or a reduction over more than `HOIST_MAX_REDUCED`
     elements, loops whose largest input leaf takes more than
-    `HOIST_MAX_BYTES` over the batch, every loop off a CPU, and every loop where JAX
-    sees more than one device run as before: XLA partitions a sharded program after
+    `HOIST_MAX_BYTES` over the batch, the loops `_tracing` keeps out (second
+    derivatives', derivatives' with reductions), every loop off a CPU, and every loop
+    where JAX sees more than one device run as before: XLA partitions a sharded program after
     this choice, and a hoisted loop then calls collectives the older emitter cannot
     link (``__xla_cpu_runtime_AllReduce``, ``__xla_cpu_runtime_PartitionId``).
     """
-    if set_xla_metadata is None or not HOIST_LOOPS:
+    runs, hoist, reductions = _TRACING[-1]
+    if set_xla_metadata is None or not HOIST_LOOPS or not hoist:
         return loop(*args)
     if jax.default_backend() != "cpu" or jax.device_count() > 1:
         return loop(*args)
     leaves = jax.tree.leaves(args)
     per_run = max((jnp.size(x) * jnp.result_type(x).itemsize for x in leaves), default=0)
-    if per_run * _BATCH[-1] > HOIST_MAX_BYTES:
+    if per_run * runs > HOIST_MAX_BYTES:
         return loop(*args)
     closed, shape = jax.make_jaxpr(loop, return_shape=True)(*args)
-    if not _hoistable(closed.jaxpr, _BATCH[-1]):  # run the traced loop (not trace it again)
+    if not _hoistable(closed.jaxpr, runs, reductions):  # run the traced loop, not again
         outs = jex_core.jaxpr_as_fun(closed)(*leaves)
         return jax.tree.unflatten(jax.tree.structure(shape), outs)
     consts, leaves = jax.lax.optimization_barrier((list(closed.consts), leaves))

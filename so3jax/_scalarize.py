@@ -426,18 +426,26 @@ def _is_cut(branches) -> bool:
     )
 
 
+def subjaxprs(params: dict) -> list:
+    """The jaxprs in an equation's ``params`` (a loop's body, a conditional's branches)."""
+    out = []
+    for v in params.values():
+        for sub in v if isinstance(v, (tuple, list)) else (v,):
+            if isinstance(sub, jex_core.ClosedJaxpr):
+                out.append(sub.jaxpr)
+            elif isinstance(sub, jex_core.Jaxpr):
+                out.append(sub)
+    return out
+
+
 def _check(jaxpr) -> None:
     """Raise `ScalarizeError` up front for any primitive `_apply` does not handle."""
     for eqn in jaxpr.eqns:
         name = eqn.primitive.name
         if name not in _ELEMENTWISE and name not in _STRUCTURAL:
             raise ScalarizeError(f"scalarize: primitive {name!r} is not supported")
-        for v in eqn.params.values():
-            for sub in v if isinstance(v, (tuple, list)) else (v,):
-                if isinstance(sub, jex_core.ClosedJaxpr):
-                    _check(sub.jaxpr)
-                elif isinstance(sub, jex_core.Jaxpr):
-                    _check(sub)
+        for sub in subjaxprs(eqn.params):
+            _check(sub)
 
 
 def scalarize(fn: Callable, *example_args) -> Callable:
