@@ -21,9 +21,19 @@ def _bench_module(name):
 
 
 def _jaxpr_size(fn, *args) -> int:
+    """The printed jaxpr's length, with the engine's loops as XLA would run them by
+    default: a hoisted array program's reductions are written out (`_engine._unrolled`),
+    which makes it the larger one."""
     import jax
 
-    return len(str(jax.make_jaxpr(fn)(*args)))
+    from so3jax import _engine
+
+    hoist, _engine.HOIST_LOOPS = _engine.HOIST_LOOPS, False
+    try:
+        return len(str(jax.make_jaxpr(fn)(*args)))
+    finally:
+        _engine.HOIST_LOOPS = hoist
+        jax.clear_caches()  # (the choice is made when a program is traced)
 
 
 def test_layouts_forces_the_array_program():

@@ -970,9 +970,8 @@ def test_hoisted_loops_equal_the_default_runtime(runs, monkeypatch):
             fns["jacfwd"] = jax.jacfwd(cost)
         for name, f in fns.items():
             compiled = jax.jit(f).lower(k).compile()
-            # a derivative program with reductions (the array layout's) is never hoisted
-            want = hoist and (name == "value" or runs > 1)
-            assert ('xla_cpu_small_call="true"' in compiled.as_text()) == want
+            # (the array layout's derivative programs with their reductions written out)
+            assert ('xla_cpu_small_call="true"' in compiled.as_text()) == hoist
             out[hoist][name] = np.asarray(compiled(k))
     for name in out[True]:
         np.testing.assert_allclose(out[True][name], out[False][name], rtol=1e-12, atol=0)
@@ -1002,19 +1001,31 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
     assert 'xla_cpu_small_call="true"' in text
 
     # A reduction over more than HOIST_MAX_REDUCED elements of the batch: XLA would make
-    # it a kernel the older emitter lacks ("Fusion kind not implemented on CPU").
-    def matmul(P, c):  # c: (6, 6); the product as _so3._mm forms it, a sum of products
+    # it a kernel the older emitter lacks ("Fusion kind not implemented on CPU"). Over at
+    # most UNROLL_MAX_TERMS terms a run it is written out and the loop hoisted (a 6x6
+    # product as _so3._mm forms it: 216 elements a run, 1080 over 5 runs); over more
+    # terms (a sum of 64 here) the loop is not hoisted past 1024 elements (the
+    # array layout's batches: the scalarized programs, from 32 runs, have no reductions).
+    def matmul(P, c):
         return jnp.tanh(jnp.sum(P[0][:, :, None] * c[None, :, :], axis=1) + P[1])
 
+    def mean(P, c):
+        return jnp.tanh(P[0] * c + jnp.sum(c) / 64 + P[1])
+
     A6 = jnp.eye(6) * 0.5
-    for runs, hoisted in ((4, True), (5, False)):  # 216 elements reduced a run
-        f = jax.vmap(lambda b: loop(matmul, (A6, b), jnp.eye(6)))
-        text = _compiled_text(f, jnp.zeros((runs, 6, 6)))
+    # (step, start, runs, hoisted, reductions left in the program)
+    cases = ((matmul, jnp.eye(6), 4, True, True), (matmul, jnp.eye(6), 5, True, False))
+    cases += ((mean, jnp.ones(64), 16, True, True), (mean, jnp.ones(64), 17, False, True))
+    for step, c0, runs, hoisted, reduces in cases:
+        P = A6 if step is matmul else 0.5
+        f = jax.vmap(lambda b, step=step, c0=c0, P=P: loop(step, (P, b), c0))
+        text = _compiled_text(f, jnp.zeros((runs,) + c0.shape))
         assert ('xla_cpu_small_call="true"' in text) == hoisted
-        got = jax.jit(f)(jnp.full((runs, 6, 6), 0.1))
-        c, want = jnp.eye(6), []
+        assert (" reduce(" in text) == reduces
+        got = jax.jit(f)(jnp.full((runs,) + c0.shape, 0.1))
+        c, want = c0, []
         for _ in range(5):
-            c = jnp.tanh(A6 @ c + 0.1)
+            c = jnp.tanh((A6 @ c if step is matmul else 0.5 * c + jnp.mean(c)) + 0.1)
             want.append(c)
         np.testing.assert_allclose(got, jnp.broadcast_to(jnp.stack(want), got.shape), rtol=1e-14)
 
@@ -1034,6 +1045,45 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
         c = jnp.tanh(0.5 * c + 0.1)
         want.append(c)
     np.testing.assert_allclose(got, jnp.stack(want, 1), rtol=1e-14)
+
+
+def _reductions(jaxpr) -> list:
+    out = [e for e in jaxpr.eqns if e.primitive.name.startswith("reduce_")]
+    for e in jaxpr.eqns:
+        for sub in sc.subjaxprs(e.params):
+            out += _reductions(sub)
+    return out
+
+
+def test_small_reductions_written_out_term_by_term():
+    """`_engine._unrolled` (what lets derivative programs' loops be hoisted) writes out
+    sums, products, maxima, minima, all and any over at most `UNROLL_MAX_TERMS` terms, in
+    nested loops and branches too, with the same numbers; a larger one stays."""
+    rng = np.random.default_rng(0)
+    A, B = jnp.asarray(rng.normal(size=(3, 3))), jnp.asarray(rng.normal(size=(3, 3)))
+    v, m = jnp.asarray(rng.normal(size=3)), jnp.array([True, False, True])
+
+    def f(A, B, v, m):
+        P = jnp.sum(A[:, :, None] * B[None, :, :], axis=1)  # as _so3._mm
+        s = jnp.sum(P * P, axis=(0, 1))  # 9 terms
+        pr = jnp.prod(v[:, None] * jnp.ones((3, 2)), axis=0)  # (through a broadcast)
+        body = lambda c, _: (jnp.sum(c[:, None] * A, axis=0), jnp.max(c))
+        c, cs = jax.lax.scan(body, v, None, length=3)
+        big = jnp.sum(jnp.arange(40.0) * s)  # 40 terms: left as is
+        branch = jax.lax.cond(s > 1, lambda: jnp.sum(v), lambda: jnp.min(jnp.exp(v)))
+        return P, s, pr, c, cs, big, branch, jnp.all(m), jnp.any(m), jnp.min(v, axis=0)
+
+    closed = jax.make_jaxpr(f)(A, B, v, m)
+    out = _engine._unrolled(closed)
+    assert len(_reductions(closed.jaxpr)) == 11
+    assert [e.params["axes"] for e in _reductions(out.jaxpr)] == [(0,)]  # the 40 terms
+    got = jax.core.eval_jaxpr(out.jaxpr, out.consts, A, B, v, m)
+    for g, w in zip(got, f(A, B, v, m), strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-15, atol=1e-15)
+    assert np.asarray(got[0]).tolist() == np.asarray(A @ B).tolist()  # row-major order
+    # a reduction of a leaf used elsewhere is sliced from it, a literal's reduced as is
+    g = lambda x: x * jnp.sum(x)
+    assert not _reductions(_engine._unrolled(jax.make_jaxpr(g)(v)).jaxpr)
 
 
 def test_hoisting_can_be_turned_off_from_the_environment():
