@@ -11,7 +11,7 @@ is, with no flag for the user to know:
   chains of updates and the Runge-Kutta stages that later stages read where XLA
   would recompute them in every element of their consumers
   (`so3jax._scalarize.array_cut_index`; a gradient over 16 seed runs 1.7x faster);
-- **a batch under ``vmap``** of 32 runs or more executes the scalarized
+- **a batch under ``vmap``** of 16 runs or more executes the scalarized
   program (`so3jax._scalarize`): every scalar component of the carry is its
   own contiguous ``(B,)`` array and a step is a few hundred small elementwise
   kernels (a structure-of-arrays layout); a smaller batch runs the array
@@ -20,7 +20,7 @@ is, with no flag for the user to know:
   both layouts are latency bound there and the array program compiles 2.5 to 5x
   faster. The switch is a
   `jax.custom_batching.custom_vmap` rule, so nested ``vmap`` (gains x
-  attitudes) and ``vmap`` inside ``jit`` take it. On CPU, from 64 runs on, the
+  attitudes) and ``vmap`` inside ``jit`` take it. On CPU the
   rule also hands the program an unbatched index
   (`so3jax._scalarize.cut_index`) with which it cuts fusion where XLA would
   recompute shared values once per consumer (`so3jax._scalarize.fusion_cut`);
@@ -38,7 +38,7 @@ is, with no flag for the user to know:
   six per-axis gains, gains and initial rates) the run computes its value and
   its Jacobian in **one pass**: the primal once, the unit tangents batched over
   it as columns (`_Loop.jac_array` / `_Loop.jac_scalar`, scalarized for
-  batches of 32 runs or more, with the columns the outer axis of every tangent
+  batches of 16 runs or more, with the columns the outer axis of every tangent
   component: `_columns_outside`). The tangent is that Jacobian times the input
   tangent: ``jacfwd`` reads the columns, and ``grad`` is JAX's transpose of
   the contraction, with nothing stored per step beyond the saved points and
@@ -64,7 +64,7 @@ program's with its columns outside the runs, as the program itself), behind a
 array program through more; the value beside it is the `_dual` itself (`_dual_jvp`).
 
 ``program="adjoint"`` runs the engine's tangent program in forward mode (a scan
-of ``jax.jvp`` of one step, scalarized for 32 runs or more; it carries tangents
+of ``jax.jvp`` of one step, scalarized for 16 runs or more; it carries tangents
 only for the leaves that can have one, `_tangent_masks`: with the gains
 differentiated, the reference attitude, time and status stay out) and makes
 reverse mode a **discrete adjoint** whatever the number of inputs (a backward scan of ``jax.vjp`` of
@@ -73,7 +73,7 @@ one step and its observation, with the states recomputed from checkpoints every
 no batching rule for ``linear_call``; `_register_linear_call_batching` adds one,
 so ``vmap(grad(...))`` and ``jacfwd`` work through it. Both derivative programs
 exist in the scalarized layout too (`BATCHED_LAYOUT`). The tangent and Jacobian
-programs take it for batches of 32 runs or more, with fusion cuts (``jacfwd`` of the
+programs take it for batches of 16 runs or more, with fusion cuts (``jacfwd`` of the
 mean cost over 256 seed starts: 7.5x faster than JAX's ``jvp`` of the array
 program). The adjoint stays in the array layout:
 XLA on CPU takes minutes to compile the scalarized one (the scalarized adjoint
@@ -358,18 +358,25 @@ def checkpoint_length(n_steps: int) -> int:
 #: How each program runs under ``vmap`` (see `_dual`), by batch size: ``(s, c)`` runs
 #: the scalarized program for batches of ``s`` runs or more (the array program, vmapped,
 #: below that) and cuts its fusion (`so3jax._scalarize.fusion_cut`, CPU only) from ``c``
-#: runs on; ``None`` never. Measured on the 2-core CPU (seed, RKMK4, `expected_cost`,
-#: 1000 steps, 2026-11-24): the forward run took 5.9 / 15.0 / 27.6 ms (array / scalarized
-#: / scalarized with cuts) for 4 runs, 14.8 / 19.4 / 29.7 ms for 16, 24.6 / 23.8 / 31.6
-#: for 32, 48 / 37 / 39 for 64 and 116 / 101 / 50 for 128. The tangent and Jacobian
-#: programs need the cuts from 32 runs on (uncut they ran 2 to 3x slower than the array
-#: layout). ``"scalar"`` and ``"array"`` are ``program="scalar"`` and ``"array"`` (benchmarks).
-#: ``"jvp"``: the programs of second derivatives (`_dual_jvp`).
+#: runs on; ``None`` never. ``"scalar"`` and ``"array"`` are ``program="scalar"`` and
+#: ``"array"`` (benchmarks); ``"jvp"``: the programs of second derivatives (`_dual_jvp`).
+#: Measured on the 2-core CPU with each loop one kernel (S47: seed, RKMK4,
+#: `expected_cost`, 1000 steps, float64, array / scalarized with cuts / without), forward
+#: pass: 2 runs 1.35 / 0.9 ms, 8 runs 4.3 / 2.5 ms, 16 runs 8.3-8.7 / 2.2 / 7.8 ms,
+#: 32 runs 16.0 / 3.2 / 12.5 ms, compiled in 2.0 / 2.4-2.6 s at 16 runs; ``grad`` (the
+#: Jacobian program) 2 runs 2.7 / 2.1 ms, 8 runs 10.5 / 6.2 ms, 16 runs 20.0 / 5.2-5.5 /
+#: 33.1 ms, 32 runs 39.3 / 8.1 / 61.9 ms, compiled in 5.0-5.2 / 7.5-8.0 s at 8 and 16 runs.
+#: From 16 runs the scalarized programs run 3.7x to 3.9x faster, which pays for their
+#: longer compile within some 60 forward passes and 180 gradients; below, a few hundred.
+#: ``jax.hessian`` over 16 runs: 170 ms (compiled in 11.1 s) with the ``"jvp"`` programs
+#: in the array layout, 177 ms (20.3 s) scalarized: they stay so below 32 runs. Before
+#: S46 (loops not hoisted) the array programs led up to 32 runs (64 for the forward
+#: pass's cuts).
 BATCHED_LAYOUT = {
-    "run": (32, 64),
+    "run": (16, 16),
     "scalar": (1, 64),
-    "tangent": (32, 32),
-    "jacobian": (32, 32),
+    "tangent": (16, 16),
+    "jacobian": (16, 16),
     "adjoint": (None, None),
     "array": (None, None),
     "jvp": (32, 32),
@@ -512,7 +519,7 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     """`_dual`'s derivative (second derivatives of a run: its rule's programs differentiated).
 
     For the forward, tangent and Jacobian programs, the value is a `_dual` of the same
-    programs (scalarized under a ``vmap`` of 32 runs or more, `BATCHED_LAYOUT`) and the
+    programs (scalarized under a ``vmap`` of 16 runs or more, `BATCHED_LAYOUT`) and the
     tangent a ``linear_call`` (`_linear_tangent`) whose program is the ``jvp`` of the
     program `_dual` would run, itself a `_dual` (``"jvp"``). ``jax.hessian`` of the mean
     cost over 256 seed starts took 0.68 s that way against 4.8 s through the array
@@ -1889,7 +1896,7 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple)
     columns over one primal (no residuals, nothing recomputed), and the tangent
     is each column scaled by its coefficient. Under ``jacfwd`` the columns are
     computed once for every basis vector; under ``grad`` JAX transposes the
-    contraction. The same program runs scalarized under ``vmap`` of 32 runs or
+    contraction. The same program runs scalarized under ``vmap`` of 16 runs or
     more (`BATCHED_LAYOUT`).
     """
     pf, cf = _floats(P), _floats(c0)

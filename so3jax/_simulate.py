@@ -61,7 +61,7 @@ def simulate(
     - `t0`: initial time.
     - `scalarize`: leave it at ``None``: the execution engine
       (`so3jax._engine`) runs a single trajectory as the array program and a
-      batch under ``vmap`` of 32 runs or more (4096 on a GPU) as the scalarized
+      batch under ``vmap`` of 16 runs or more (4096 on a GPU) as the scalarized
       program (every scalar component a contiguous batch array, a few fused
       kernels per step: on CPU about 4x the array program's throughput at 2048
       trajectories). Through up to 8 differentiated scalars it differentiates a

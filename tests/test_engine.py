@@ -681,8 +681,12 @@ def test_scalarized_tangent_program_for_large_batches():
     assert _rel(jf(K0), ref) < 1e-10
     hlo = jf.lower(K0).as_text()
     assert f"tensor<2x{B}xf64>" in hlo and f"tensor<{B}x2xf64>" not in hlo
-    # the Hessian's jvp of that program too (its values: test_second_derivatives_...)
-    assert f"tensor<{B}x2xf64>" not in jax.jit(jax.hessian(cost("auto"))).lower(K0).as_text()
+    # the Hessian's jvp of that program too (its values: test_second_derivatives_...),
+    # where it runs scalarized (from BATCHED_LAYOUT["jvp"]'s runs; here made B's)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(_engine.BATCHED_LAYOUT, "jvp", (B, B))
+        hlo = jax.jit(jax.hessian(cost("auto"))).lower(K0).as_text()
+    assert f"tensor<{B}x2xf64>" not in hlo
 
 
 def test_scalarized_jacobian_without_cuts(monkeypatch):
@@ -993,6 +997,7 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
 
     # 20 runs: the array program, vmapped (its dot stays a dot), over the 1 kB under
     # which XLA hoists a loop itself (``xla_cpu_small_while_loop_byte_threshold``).
+    monkeypatch.setitem(_engine.BATCHED_LAYOUT, "run", (None, None))  # (array programs)
     A, bs = jnp.eye(3) * 0.5, jnp.zeros((20, 3))
     text = _compiled_text(jax.vmap(lambda b: loop(step, (A, b), jnp.ones(3))), bs)
     assert "xla_cpu_small_call" not in text
@@ -1029,6 +1034,7 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
             want.append(c)
         np.testing.assert_allclose(got, jnp.broadcast_to(jnp.stack(want), got.shape), rtol=1e-14)
 
+    monkeypatch.undo()  # (the engine's own layouts again)
     monkeypatch.setattr(_engine, "HOIST_MAX_BYTES", 1000)  # 200 float64 runs: over
     batch = jax.vmap(lambda b: loop(elementwise, (0.5, b), jnp.ones(3)))
     assert "xla_cpu_small_call" not in _compiled_text(batch, jnp.zeros((200, 3)))
