@@ -32,7 +32,7 @@ is, with no flag for the user to know:
   leaf exceeds `HOIST_MAX_BYTES`, sharded programs and second derivatives' programs
   run as before (``SO3JAX_HOIST_LOOPS=0`` turns it off). The array layout's derivative
   programs are hoisted with their small reductions written out term by term
-  (`_unrolled`: S47, a single run's gradient 4x faster, 16 runs' 1.6x);
+  (`_unrolled`: S47, a single run's gradient 3.7x to 3.95x faster);
 - **a differentiated run** hangs its derivatives on one ``jax.custom_jvp``.
   Through at most `FORWARD_JACOBIAN_MAX` differentiated scalars (two gains,
   six per-axis gains, gains and initial rates) the run computes its value and

@@ -1010,7 +1010,7 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
     # most UNROLL_MAX_TERMS terms a run it is written out and the loop hoisted (a 6x6
     # product as _so3._mm forms it: 216 elements a run, 1080 over 5 runs); over more
     # terms (a sum of 64 here) the loop is not hoisted past 1024 elements (the
-    # array layout's batches: the scalarized programs, from 32 runs, have no reductions).
+    # array layout's batches: the scalarized programs have no reductions).
     def matmul(P, c):
         return jnp.tanh(jnp.sum(P[0][:, :, None] * c[None, :, :], axis=1) + P[1])
 
