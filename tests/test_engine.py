@@ -357,6 +357,8 @@ def test_second_derivatives_equal_autodiff(n, monkeypatch):
         fj = lambda q: _toy_second(q, program, True)  # noqa: E731
         ps = p * jnp.linspace(0.8, 1.2, 3)[:, None]
         big = mean(program, True, p * jnp.linspace(0.8, 1.2, 40)[:, None])
+        mid = mean(program, True, p * jnp.linspace(0.8, 1.2, 20)[:, None])
+        assert _engine.BATCHED_LAYOUT["jacobian"][0] <= 20 < _engine.BATCHED_LAYOUT["jvp"][0]
         J = jax.jit  # one compiled program per case (eager ones compile piece by piece)
         out = {"hessian(mean jitted vmap 40)": J(jax.hessian(big))(jnp.ones(n))}
         if n > _engine.FORWARD_JACOBIAN_MAX:
@@ -373,6 +375,8 @@ def test_second_derivatives_equal_autodiff(n, monkeypatch):
             ),
             "jacfwd(hessian(mean jitted vmap 40))": J(jax.jacfwd(jax.hessian(big)))(jnp.ones(n)),
             "jacrev(jacrev(mean jitted vmap 40))": J(jax.jacrev(jax.jacrev(big)))(jnp.ones(n)),
+            # 20 runs: the Jacobian program scalarized, its jvp (BATCHED_LAYOUT["jvp"]) not
+            "hessian(mean jitted vmap 20)": J(jax.hessian(mid))(jnp.ones(n)),
             "hessian": J(jax.hessian(f))(p),
             "jacrev(jacrev)": J(jax.jacrev(jax.jacrev(f)))(p),
             "jvp(grad)": J(jvp(jax.grad(f), u))(p),
