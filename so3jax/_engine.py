@@ -993,22 +993,8 @@ _HOISTABLE = frozenset(
 HOIST_MAX_REDUCED = 1024
 
 
-def _hoistable(jaxpr, runs: int = 1, reductions: bool = True) -> bool:
-    """Whether every equation of ``jaxpr`` (nested ones too) is in `_HOISTABLE`, with no
-    reduction (none at all without ``reductions``) over more than `HOIST_MAX_REDUCED`
-    elements in a batch of ``runs`` runs."""
-    for e in jaxpr.eqns:
-        if e.primitive.name not in _HOISTABLE:
-            return False
-        if e.primitive.name.startswith("reduce_") and e.primitive.name != "reduce_precision":
-            if not reductions or math.prod(e.invars[0].aval.shape) * runs > HOIST_MAX_REDUCED:
-                return False
-        if not all(_hoistable(j, runs, reductions) for j in sc.subjaxprs(e.params)):
-            return False
-    return True
-
-
-#: Reductions that `_unrolled` writes out term by term, with the operation of each step.
+#: The reductions a hoisted loop may hold (all of `_HOISTABLE`'s), with the operation of
+#: each step when `_unrolled` writes them out term by term.
 _UNROLLED = {
     "reduce_sum": jax.lax.add,
     "reduce_prod": jax.lax.mul,
@@ -1017,6 +1003,22 @@ _UNROLLED = {
     "reduce_and": jax.lax.bitwise_and,
     "reduce_or": jax.lax.bitwise_or,
 }
+
+
+def _hoistable(jaxpr, runs: int = 1, reductions: bool = True) -> bool:
+    """Whether every equation of ``jaxpr`` (nested ones too) is in `_HOISTABLE`, with no
+    reduction (none at all without ``reductions``) over more than `HOIST_MAX_REDUCED`
+    elements in a batch of ``runs`` runs (``runs=0``: whatever its reductions)."""
+    for e in jaxpr.eqns:
+        if e.primitive.name not in _HOISTABLE:
+            return False
+        if e.primitive.name in _UNROLLED:
+            if not reductions or math.prod(e.invars[0].aval.shape) * runs > HOIST_MAX_REDUCED:
+                return False
+        if not all(_hoistable(j, runs, reductions) for j in sc.subjaxprs(e.params)):
+            return False
+    return True
+
 
 #: The most terms a run that `_unrolled` writes a reduction out with: the 3-term sums
 #: of the array layout's 3x3 products, the 9-term sums of a Frobenius product.
@@ -1203,8 +1205,8 @@ def _hoisted(loop: Callable, *args):
         return loop(*args)
     closed, shape = jax.make_jaxpr(loop, return_shape=True)(*args)
     hoisted = closed
-    if not _hoistable(hoisted.jaxpr, runs, reductions):
-        hoisted = _unrolled(closed)  # what stands in the way may be reductions
+    if not _hoistable(closed.jaxpr, runs, reductions) and _hoistable(closed.jaxpr, 0):
+        hoisted = _unrolled(closed)  # only reductions stand in the way: write them out
     if not _hoistable(hoisted.jaxpr, runs, reductions):  # run the traced loop, not again
         outs = jex_core.jaxpr_as_fun(closed)(*leaves)
         return jax.tree.unflatten(jax.tree.structure(shape), outs)
