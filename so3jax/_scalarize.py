@@ -729,12 +729,22 @@ def flat_program(fn: Callable, example, index=None, cut_cone: int = CUT_CONE):
 
 
 def _batched_const(x) -> bool:
-    """Whether a constant of a flat program is batched by an enclosing `vmap`."""
+    """Whether a constant of a flat program is batched by an enclosing `vmap`.
+
+    A `BatchTracer` with a batch axis. JAX up to 0.9 marks an unbatched one's axis with
+    the sentinel ``not_mapped``; 0.10 with ``None`` (and has no ``not_mapped``).
+    """
     try:
-        from jax._src.interpreters.batching import BatchTracer, not_mapped
+        from jax._src.interpreters import batching
     except ImportError:  # pragma: no cover - JAX moved it: assume batched (safe)
         return isinstance(x, jax.core.Tracer)
-    return isinstance(x, BatchTracer) and x.batch_dim is not not_mapped
+    tracer = getattr(batching, "BatchTracer", None)
+    if tracer is None:  # pragma: no cover - as above
+        return isinstance(x, jax.core.Tracer)
+    if not isinstance(x, tracer):
+        return False
+    axis = x.batch_dim
+    return axis is not None and axis is not getattr(batching, "not_mapped", None)
 
 
 def batched_components(run_flat, flat: list, batched: list, dtypes=None) -> list | None:

@@ -273,6 +273,42 @@ def test_settle_batched_reaches_the_scan_fixed_point_and_keeps_shared_values():
     assert carry == [(6,), (6,), (6,), ()], carry  # batched once, d still shared
 
 
+def test_settle_batched_keeps_values_from_an_outer_jit_unbatched():
+    """A value the step closes over from an outer ``jit`` is not batched by the ``vmap``
+    inside it: a carry component that depends only on it stays shared (JAX 0.10 has no
+    ``batching.not_mapped``, and every traced constant used to count as batched)."""
+    from so3jax import _scalarize as sc
+
+    seen = []
+
+    def outer(s, A, one):
+        def step(x):
+            a, d = x
+            return (0.5 * a + s, s * d - 1.0)  # d never meets the batched a
+
+        ex = (jnp.asarray(1.0), jnp.asarray(4.0))
+        run, _ = sc.flat_program(step, ex, jnp.asarray(0, jnp.int32), cut_cone=2)
+        seen.append(sc.batched_components(run, sc.split(ex), [True, False]))
+
+        def loop(a, o):
+            flat = sc.settle_batched(run, [a, ex[1]], [True, False], o)
+            return jax.lax.scan(lambda f, _: (run(f), None), flat, None, length=3)[0]
+
+        return jax.vmap(loop)(A, one)
+
+    A, one = jnp.linspace(0.1, 0.9, 4), jnp.zeros(4, jnp.int32)
+    a3, d3 = jax.jit(outer)(0.5, A, one)
+    assert seen == [[1, 0]], seen
+    jaxpr = jax.make_jaxpr(outer)(0.5, A, one)
+    (vm,) = [e for e in jaxpr.eqns if e.primitive.name == "scan"]
+    assert [v.aval.shape for v in vm.outvars] == [(4,), ()]  # d computed once
+    d = 4.0
+    for _ in range(3):
+        d, A = 0.5 * d - 1.0, 0.5 * A + 0.5
+    np.testing.assert_allclose(a3, A, rtol=1e-14)
+    np.testing.assert_allclose(d3, d, rtol=1e-14)
+
+
 def test_fusion_cut_branches_are_traced_once_per_operand_types():
     """Cuts at the same operand types share their branch jaxprs (`_cut_branches`); the
     values pass through for index 0 and 1, and the never-taken branch gives zeros."""
