@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._control import GeometricController, GeometricGains
-from ._engine import run
+from ._engine import jit_own, run
 from ._integrators import RKMK4, AbstractLieSolver
 from ._scene import Scene
 from ._simulate import engine_step, guarded_step, join_groups, split_groups, split_scene
@@ -633,7 +633,7 @@ def _descend(loss, params, optimizer, opt_state, n_iter, gradient, project, prog
 
     value_and_grad = _value_and_grad(loss, _resolve_gradient(gradient, params))
 
-    @jax.jit
+    @jit_own  # compiled with the engine's options for the library's own programs
     def step(params, opt_state):
         value, grad = value_and_grad(params)
         updates, opt_state = optimizer.update(grad, opt_state, params)

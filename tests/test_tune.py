@@ -162,6 +162,32 @@ def test_forward_and_reverse_tuning_agree():
     np.testing.assert_allclose(rev.k_Omega_history, fwd.k_Omega_history, rtol=1e-10)
 
 
+def test_tune_compiles_its_iteration_with_the_engines_options(monkeypatch):
+    """`tune`'s iteration goes through `_engine.jit_own`: the engine's options for the
+    library's own programs reach XLA (one XLA does not know fails the compile), a level
+    the caller names in ``XLA_FLAGS`` wins, and the tuning does not depend on the level."""
+    from so3jax import _engine
+
+    scene = s.scenes.seed()
+    kw = dict(method=s.LieEuler(), dt=DT, n_steps=20, n_iter=3)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
+    assert _engine.own_compiler_options() is None
+    caller = s.tune(scene, (2.0, 1.0), **kw)
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setitem(
+        _engine.OWN_COMPILER_OPTIONS, jax.default_backend(), {"xla_backend_optimization_level": 2}
+    )
+    assert _engine.own_compiler_options() == {"xla_backend_optimization_level": 2}
+    own = s.tune(scene, (2.0, 1.0), **kw)
+    np.testing.assert_allclose(own.cost_history, caller.cost_history, rtol=1e-10)
+    np.testing.assert_allclose(own.k_R_history, caller.k_R_history, rtol=1e-10)
+    monkeypatch.setitem(
+        _engine.OWN_COMPILER_OPTIONS, jax.default_backend(), {"xla_no_such_option": 1}
+    )
+    with pytest.raises(Exception, match="xla_no_such_option"):
+        s.tune(scene, (2.0, 1.0), **kw)
+
+
 def test_auto_gradient_is_forward_mode_through_few_scalars(monkeypatch):
     """``gradient="auto"`` (the default) runs forward mode through at most
     `FORWARD_MODE_MAX` tuned scalars and reverse mode beyond, in both modes of `tune`."""
