@@ -445,14 +445,38 @@ def own_compiler_options() -> dict | None:
 
 
 def jit_own(fn: Callable) -> Callable:
-    """``jax.jit(fn)`` for a program the library compiles itself, with `own_compiler_options`."""
+    """``jax.jit(fn)`` for a program the library compiles itself, with `own_compiler_options`.
+
+    Should XLA not know an option (a later jaxlib may drop one: JAX 0.11's rejects a CPU
+    flag 0.10's knows), the program compiles with XLA's defaults instead, with a warning.
+    """
+    plain = jax.jit(fn)
     options = own_compiler_options()
     if options is None:
-        return jax.jit(fn)
+        return plain
     try:
-        return jax.jit(fn, compiler_options=options)
+        tuned = jax.jit(fn, compiler_options=options)
     except TypeError:  # pragma: no cover - a JAX whose `jit` takes no compiler options
-        return jax.jit(fn)
+        return plain
+    rejected = []
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if not rejected:
+            try:
+                return tuned(*args, **kwargs)
+            except Exception as e:  # XLA's error type moves between JAX versions
+                if "compile option" not in str(e):
+                    raise
+                rejected.append(e)
+                warnings.warn(
+                    f"so3jax: XLA rejected the compile options {options} ({e}); "
+                    "compiling with its defaults",
+                    stacklevel=2,
+                )
+        return plain(*args, **kwargs)
+
+    return call
 
 
 def sweep_scalarize(devices) -> bool:
