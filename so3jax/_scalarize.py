@@ -736,10 +736,9 @@ def _batched_const(x) -> bool:
     """
     try:
         from jax._src.interpreters import batching
-    except ImportError:  # pragma: no cover - JAX moved it: assume batched (safe)
-        return isinstance(x, jax.core.Tracer)
-    tracer = getattr(batching, "BatchTracer", None)
-    if tracer is None:  # pragma: no cover - as above
+
+        tracer = batching.BatchTracer
+    except (ImportError, AttributeError):  # pragma: no cover - JAX moved it: assume batched
         return isinstance(x, jax.core.Tracer)
     if not isinstance(x, tracer):
         return False
