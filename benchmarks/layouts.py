@@ -20,6 +20,7 @@ Writes ``results/layouts[-check][-<backend>][-quick].json`` (a ``.partial.json``
     python benchmarks/layouts.py            # GPU sizes (B up to 2^20)
     python benchmarks/layouts.py --quick    # smoke run: small batches
     python benchmarks/layouts.py --check    # only the rows around GPU_LAYOUT's cut (4096)
+    python benchmarks/layouts.py --derivatives 4096   # only the derivative rows, at 4096 runs
 """
 
 from __future__ import annotations
@@ -118,10 +119,19 @@ def main():
             help="only the rows around the GPU table's cut: RKMK4 at 2048 and 4096 runs, "
             "derivatives at 256",
         )
+        p.add_argument(
+            "--derivatives",
+            nargs="+",
+            type=int,
+            metavar="B",
+            help="only the derivative rows, at these batch sizes (written as layouts-derivatives)",
+        )
 
     args = C.parse_args(__doc__.splitlines()[0], extra)
     name = "layouts-check" if args.check else "layouts"
-    if args.check:
+    if args.derivatives:
+        name, jobs, dbatches = "layouts-derivatives", [], args.derivatives
+    elif args.check:
         jobs = [("RKMK4", "float32", 2048), ("RKMK4", "float32", 4096), ("RKMK4", "float64", 2048)]
         dbatches = [256]
         if args.quick:

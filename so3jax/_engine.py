@@ -16,9 +16,9 @@ is, with no flag for the user to know:
   own contiguous ``(B,)`` array and a step is a few hundred small elementwise
   kernels (a structure-of-arrays layout); a smaller batch runs the array
   program, vmapped (faster there: `BATCHED_LAYOUT`). On a GPU the threshold is
-  4096 runs (`GPU_LAYOUT`), for runs and their one-pass Jacobians alike: below it
-  both layouts are latency bound there and the array program compiles 2.5 to 5x
-  faster. The switch is a
+  32768 runs for runs and 16384 for their one-pass Jacobians (`GPU_LAYOUT`): below
+  it the array program, which compiles 3 to 5x faster, saves more in compile
+  there than it loses in 100 calls. The switch is a
   `jax.custom_batching.custom_vmap` rule, so nested ``vmap`` (gains x
   attitudes) and ``vmap`` inside ``jit`` take it. On CPU the
   rule also hands the program an unbatched index
@@ -383,24 +383,37 @@ BATCHED_LAYOUT = {
 }
 
 #: On a GPU, the entries that differ from `BATCHED_LAYOUT` (the others are the CPU's).
-#: ``"run"``: scalarized from 4096 runs. Below that a GPU is latency bound in either
-#: layout and the scalarized program compiles 5x longer: at 2048 seed runs (100 steps,
-#: RKMK4) it ran 0.89x (float32) and 1.13x (float64) the array program's speed on S30's
-#: H100 and 1.02x / 1.10x on S31's H200, and compiled in 8.6 to 9.3 s against 1.4 to
-#: 2.2 s. From 4096 runs it pulls ahead: 1.27x at 4096 (float64, 750 steps, H200), 7.6x
-#: to 8.4x at 2^20. Cuts are CPU only (`so3jax._scalarize.cut_index`).
-#: ``"jacobian"`` (``grad`` / ``jacfwd`` through a few scalars): likewise scalarized from
-#: 4096 runs. At 256 seed runs (`expected_cost`, 1000 steps, float64, S41's H100,
-#: `benchmarks/layouts.py --check`) the scalarized program ran ``grad`` in 79.3 ms after
-#: 17.2 s of compile and ``jacfwd`` in 79.1 ms after 20.1 s, the array program 95.5 ms
-#: after 7.1 s and 95.4 ms after 6.5 s: a `tune` of 100 iterations (its default) takes
-#: 16 s instead of 28 s, and the scalarized program pays back only after some 630
-#: (``grad``) to 830 (``jacfwd``) calls in one process. At 4096 runs the scalarized
-#: program stays (``grad`` 94 ms, 1.8x the forward pass; the array one there unmeasured).
-#: ``"jvp"`` (second derivatives, `_dual_jvp`) follows them, unmeasured: S41's H100 ran
-#: ``jax.hessian`` of that cost at 256 runs in 212 ms (3.6x the forward pass) before the
-#: scalarized ``"jvp"`` programs existed.
-GPU_LAYOUT = {"run": (4096, None), "jacobian": (4096, None), "jvp": (4096, None)}
+#: A GPU is latency bound in either layout up to a few thousand runs, and there the
+#: scalarized program compiles 3 to 5x longer (9 to 20 s against 2 to 7 s) than the
+#: array program: each entry scalarizes from where 100 calls with their compile take
+#: less time than the array program's (S49).
+#: ``"run"``: scalarized from 32768 runs. Seed runs, RKMK4, scalarized / array:
+#:   2048 runs, 100 steps: 0.89x (float32) and 1.13x (float64) the array program's speed
+#:   on S30's H100 and 1.02x / 1.10x on S31's H200, compiled in 8.6 to 9.3 s against 1.4
+#:   to 2.2 s; 4096 runs, float32, 100 steps (S41's H100): 4.4 / 5.3 ms, compiled in
+#:   14.4 / 2.0 s (the scalarized program pays back after 13000 calls);
+#:   `expected_cost`'s forward pass, float64, 1000 steps (S49's H100, `layouts.py
+#:   --derivatives`): 4096 runs 52.6 / 64.7 ms, compiled in 13.1 / 2.4 s (100 calls
+#:   18.4 / 8.9 s); 32768 runs 64.3 / 138.9 ms, 11.3 / 3.2 s (100 calls 17.7 / 17.1 s);
+#:   2^20 runs, float32, 100 steps: 7.6x to 8.4x faster (S30 to S49).
+#: Until S49 runs were scalarized from 4096. Cuts are CPU only
+#: (`so3jax._scalarize.cut_index`).
+#: ``"jacobian"`` (``grad`` / ``jacfwd`` through a few scalars): scalarized from 16384
+#: runs (4096 until S49), where a `tune` of 100 iterations (its default) breaks even.
+#: Seed runs, `expected_cost`, 1000 steps, float64, ``grad`` scalarized / array
+#: (``jacfwd`` within 1 % of it, compile within 3 s):
+#:   256 runs (S41's H100, `layouts.py --check`): 79.3 / 95.5 ms, compiled in 17.2 / 7.1 s;
+#:   4096 runs (S49's H100, `layouts.py --derivatives`): 95.7 / 136.8 ms, 20.0 / 5.7 s;
+#:   32768 runs (S49): 159.8 / 432.2 ms, 15.1 / 6.3 s.
+#: So 100 gradients with their compile take 29.6 / 19.4 s at 4096 runs and 31.1 / 49.5 s
+#: at 32768; fitting each program's time as linear in the runs puts the two level near
+#: 15000 runs (unmeasured between). The scalarized program pays back after some 630
+#: calls at 256 runs, 350 at 4096 and 32 at 32768.
+#: ``"jvp"`` (second derivatives, `_dual_jvp`): scalarized from 4096 runs, unmeasured
+#: there. With the array program at 256 runs S49's H100 ran ``jax.hessian`` of that cost
+#: in 199 ms (3.5x the forward pass) after 17.5 s of compile; S41's, scalarized, 212 ms
+#: after 18.2 s.
+GPU_LAYOUT = {"run": (32768, None), "jacobian": (16384, None), "jvp": (4096, None)}
 
 #: `so3jax.sweep`'s runs per chunk when none is given, per device: ``"cpu"`` 1024 (a
 #: 2-core CPU is throughput bound from a few hundred runs; larger chunks only cost

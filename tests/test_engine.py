@@ -808,8 +808,9 @@ def test_dependence_walk():
 
 def test_gpu_layout_table(monkeypatch):
     """On a GPU `batched_layout` takes `GPU_LAYOUT`'s entries: a batch of 64 runs (scalarized
-    on the CPU) traces the array program there, 4096 runs the scalarized one; so does the
-    one-pass Jacobian of ``jacfwd``; the other programs keep the CPU's table. (That both
+    on the CPU) traces the array program there, 32768 runs the scalarized one; the one-pass
+    Jacobian of ``jacfwd`` over 64 runs is the array program there too (scalarized from
+    16384 runs); the other programs keep the CPU's table. (That both
     layouts give the same numbers is `test_scalarize.py`'s.) Traces only: compiling them
     would cost the suite seconds."""
     sc = s.scenes.seed()
