@@ -30,7 +30,8 @@ is, with no flag for the user to know:
   2.9x faster, a single run 3.5x to 3.75x, a gradient over 256 runs 2.5x). Loops
   with a dot or another primitive XLA's older emitter refuses, batches whose largest
   leaf exceeds `HOIST_MAX_BYTES`, sharded programs and second derivatives' programs
-  run as before (``SO3JAX_HOIST_LOOPS=0`` turns it off). The array layout's derivative
+  run as before (``SO3JAX_HOIST_LOOPS=0`` turns it off; so does a jaxlib outside
+  `HOIST_VERIFIED`, the releases tested). The array layout's derivative
   programs are hoisted with their small reductions written out term by term
   (`_unrolled`: S47, a single run's gradient 3.7x to 3.95x faster);
 - **a differentiated run** hangs its derivatives on one ``jax.custom_jvp``.
@@ -99,6 +100,7 @@ import itertools
 import math
 import os
 import warnings
+import weakref
 from collections.abc import Callable
 
 import jax
@@ -994,11 +996,39 @@ def _component_flags(example, batched) -> list:
 #: 1 everywhere for now; `benchmarks/unroll.py` measures other values per backend.
 SCAN_UNROLL = 1
 
+#: The jaxlib releases (major, minor) on which the whole test suite passes with the
+#: loops hoisted (`HOIST_LOOPS`): 0.10.2, 0.11.2 and 0.12.0.1 (S49). On another,
+#: hoisting stays off unless asked for: XLA's older emitter aborts the process, not
+#: raises, where it cannot compile a hoisted loop (as 0.11 and 0.12 did before S49's
+#: fix in `_hoisted`).
+HOIST_VERIFIED = frozenset({(0, 10), (0, 11), (0, 12)})
+
+
+def hoisting_verified() -> bool:
+    """Whether the installed jaxlib is one of `HOIST_VERIFIED`."""
+    try:
+        import jaxlib
+
+        release = tuple(int(x) for x in jaxlib.__version__.split(".")[:2])
+    except (ImportError, AttributeError, ValueError):
+        return False
+    return release in HOIST_VERIFIED
+
+
+def _hoist_default() -> bool:
+    """`HOIST_LOOPS`'s value at import: ``SO3JAX_HOIST_LOOPS`` (``0`` or ``1``) if set,
+    else `hoisting_verified`."""
+    asked = os.environ.get("SO3JAX_HOIST_LOOPS")
+    return hoisting_verified() if asked is None else asked != "0"
+
+
 #: Run the engine's loops as one kernel each on a CPU (`_hoisted`). ``False`` gives
-#: XLA's default: one kernel per fusion, handed between the threads of its pool. The
-#: environment variable ``SO3JAX_HOIST_LOOPS=0`` (read at import) turns it off, should
-#: XLA's older emitter refuse a loop of some scene (a compile error naming a fusion kind).
-HOIST_LOOPS = os.environ.get("SO3JAX_HOIST_LOOPS", "1") != "0"
+#: XLA's default: one kernel per fusion, handed between the threads of its pool, 2.5x
+#: to 3.75x slower (S46). On by default only on a jaxlib of `HOIST_VERIFIED`. The
+#: environment variable ``SO3JAX_HOIST_LOOPS`` (read at import) overrides that: ``0``
+#: should XLA's older emitter refuse a loop of some scene (a compile error naming a
+#: fusion kind, or an abort), ``1`` to try hoisting on another jaxlib.
+HOIST_LOOPS = _hoist_default()
 
 #: The largest input leaf of a hoisted loop, in bytes, over the runs of a batch: one
 #: kernel gives up XLA's threads, which pay for large batches. Seed forward pass,
@@ -1103,11 +1133,22 @@ def _small_reduction(e) -> bool:
     )
 
 
+#: What `_has_small_reduction` and `_unrolled` found for a jaxpr (by identity, while it
+#: lives). A step's jitted parts appear in a loop once per stage, and each level of
+#: nesting asked again about the jaxprs below it: the seed's gradient over 16 runs
+#: asked 98 times about 29 jaxprs and unrolled 28 of them 77 times.
+_SMALL_MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_UNROLLED_MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 def _has_small_reduction(jaxpr) -> bool:
-    return any(
-        _small_reduction(e) or any(_has_small_reduction(j) for j in sc.subjaxprs(e.params))
-        for e in jaxpr.eqns
-    )
+    found = _SMALL_MEMO.get(jaxpr)
+    if found is None:
+        found = _SMALL_MEMO[jaxpr] = any(
+            _small_reduction(e) or any(_has_small_reduction(j) for j in sc.subjaxprs(e.params))
+            for e in jaxpr.eqns
+        )
+    return found
 
 
 def _unrolled(closed):
@@ -1126,11 +1167,15 @@ def _unrolled(closed):
     """
     if not _has_small_reduction(closed.jaxpr):
         return closed
-    args = [
-        jax.ShapeDtypeStruct(v.aval.shape, v.aval.dtype, weak_type=v.aval.weak_type)
-        for v in closed.jaxpr.invars
-    ]
-    return jax.make_jaxpr(lambda *a: _eval_unrolled(closed.jaxpr, closed.consts, a))(*args)
+    out = _UNROLLED_MEMO.get(closed)
+    if out is None:
+        args = [
+            jax.ShapeDtypeStruct(v.aval.shape, v.aval.dtype, weak_type=v.aval.weak_type)
+            for v in closed.jaxpr.invars
+        ]
+        out = jax.make_jaxpr(lambda *a: _eval_unrolled(closed.jaxpr, closed.consts, a))(*args)
+        _UNROLLED_MEMO[closed] = out
+    return out
 
 
 def _unrolled_param(v):
@@ -1140,8 +1185,11 @@ def _unrolled_param(v):
     if isinstance(v, jex_core.ClosedJaxpr):
         return _unrolled(v)
     if isinstance(v, jex_core.Jaxpr) and not v.constvars and _has_small_reduction(v):
-        out = _unrolled(jex_core.ClosedJaxpr(v, ()))
-        return v if out.consts else out.jaxpr
+        out = _UNROLLED_MEMO.get(v)
+        if out is None:
+            closed = _unrolled(jex_core.ClosedJaxpr(v, ()))
+            out = _UNROLLED_MEMO[v] = () if closed.consts else (closed.jaxpr,)
+        return out[0] if out else v
     return v
 
 
@@ -1251,7 +1299,13 @@ def _hoisted(loop: Callable, *args):
 
     The loop's inputs pass an `optimization_barrier` first: XLA otherwise sinks
     constant operands (a batch of starts closed over as a constant) into the call,
-    and the older emitter aborts on constants of more than about 10 kB. A loop that
+    and the older emitter aborts on constants of more than about 10 kB. The call
+    also returns its inputs (unused): so they stay live to its end, and XLA cannot
+    hand an input's memory to a value inside the loop. On JAX 0.11 and 0.12 it did
+    (a loop's carry in an input's place, at the same offset, larger), and the older
+    emitter then aborted the process (``Check failed:
+    slice_to_buffer_table_index_.empty() || has_explicit_index``; the gradient of a
+    free body's run whose start was a constant of the jitted cost, S49). A loop that
     holds reductions where `_tracing` allows none (a derivative program's), or one
     over more than `HOIST_MAX_REDUCED` elements, is hoisted with its reductions written
     out (`_unrolled`) if that is all that stood in the way. Loops with a primitive
@@ -1283,10 +1337,11 @@ def _hoisted(loop: Callable, *args):
 
     @jax.jit
     def call(consts, leaves):
-        return jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(hoisted.jaxpr, consts))(*leaves)
+        outs = jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(hoisted.jaxpr, consts))(*leaves)
+        return outs, (consts, leaves)
 
     with set_xla_metadata(xla_cpu_small_call="true", inlineable="false"):
-        outs = call(consts, leaves)
+        outs, _ = call(consts, leaves)
     return jax.tree.unflatten(jax.tree.structure(shape), outs)
 
 
@@ -1623,7 +1678,7 @@ def _register_linear_call_batching() -> bool:
     engine then falls back to plain autodiff of the array program).
     """
     try:
-        from jax._src import core, custom_derivatives as cd
+        from jax._src import custom_derivatives as cd
         from jax._src.interpreters import batching, partial_eval as pe
     except ImportError:  # pragma: no cover - JAX internals moved
         return False
@@ -1637,7 +1692,7 @@ def _register_linear_call_batching() -> bool:
         if not closed.consts:
             return closed, []
         jaxpr = pe.convert_constvars_jaxpr(closed.jaxpr)
-        return core.ClosedJaxpr(jaxpr, ()), list(closed.consts)
+        return jex_core.ClosedJaxpr(jaxpr, ()), list(closed.consts)
 
     def rule(axis_data, args, dims, *, callee, transpose_thunk, num_callee_consts, num_res):
         if all(d is None for d in dims):

@@ -536,16 +536,18 @@ def _first_scan(jaxpr):
 
 
 def _spy_batch_jaxpr(monkeypatch) -> list:
-    """The equation counts of the jaxprs JAX batches from now on (`batching.batch_jaxpr`)."""
+    """The equation counts of the jaxprs JAX batches from now on
+    (`batching.batch_jaxpr_axes`, which `batching.batch_jaxpr` calls up to JAX 0.11 and
+    a loop's batching rule calls itself from 0.12)."""
     from jax._src.interpreters import batching
 
-    calls, original = [], batching.batch_jaxpr
+    calls, original = [], batching.batch_jaxpr_axes
 
-    def spy(closed, *args, **kwargs):
-        calls.append(len(closed.jaxpr.eqns))
-        return original(closed, *args, **kwargs)
+    def spy(jaxpr, *args, **kwargs):
+        calls.append(len(getattr(jaxpr, "jaxpr", jaxpr).eqns))
+        return original(jaxpr, *args, **kwargs)
 
-    monkeypatch.setattr(batching, "batch_jaxpr", spy)
+    monkeypatch.setattr(batching, "batch_jaxpr_axes", spy)
     return calls
 
 
@@ -949,6 +951,21 @@ def _compiled_text(f, *args) -> str:
     return jax.jit(f).lower(*args).compile().as_text()
 
 
+def _hoisted_in(text: str) -> bool:
+    """Whether a compiled program holds a loop `_engine._hoisted` made one kernel. XLA
+    tags small loops of its own with ``xla_cpu_small_call`` too (JAX 0.12's XLA also
+    some that `_hoisted` left alone), but only `_hoisted` keeps its call from inlining."""
+    return 'inlineable="false"' in text
+
+
+#: Tests that force hoisting on: only on the jaxlib releases the suite has passed on
+#: with it (`_engine.HOIST_VERIFIED`); elsewhere the engine leaves it off.
+needs_hoisting = pytest.mark.skipif(
+    not _engine.hoisting_verified(), reason="hoisting is off on this jaxlib (HOIST_VERIFIED)"
+)
+
+
+@needs_hoisting
 @pytest.mark.parametrize("runs", [1, 40])
 def test_hoisted_loops_equal_the_default_runtime(runs, monkeypatch):
     """Loops compiled as one kernel (`_engine._hoisted`) give XLA's default runtime's
@@ -980,13 +997,14 @@ def test_hoisted_loops_equal_the_default_runtime(runs, monkeypatch):
         for name, f in fns.items():
             compiled = jax.jit(f).lower(k).compile()
             # (the array layout's derivative programs with their reductions written out)
-            assert ('xla_cpu_small_call="true"' in compiled.as_text()) == hoist
+            assert _hoisted_in(compiled.as_text()) == hoist
             out[hoist][name] = np.asarray(compiled(k))
     for name in out[True]:
         np.testing.assert_allclose(out[True][name], out[False][name], rtol=1e-12, atol=0)
     jax.clear_caches()
 
 
+@needs_hoisting
 def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
     """No hoisting for a loop with a dot (XLA's older emitter refuses it), nor with a
     reduction over more than 1024 elements, nor for one whose batch exceeds
@@ -1005,10 +1023,10 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
     monkeypatch.setitem(_engine.BATCHED_LAYOUT, "run", (None, None))  # (array programs)
     A, bs = jnp.eye(3) * 0.5, jnp.zeros((20, 3))
     text = _compiled_text(jax.vmap(lambda b: loop(step, (A, b), jnp.ones(3))), bs)
-    assert "xla_cpu_small_call" not in text
+    assert not _hoisted_in(text)
     elementwise = lambda P, c: jnp.tanh(P[0] * c + P[1])
     text = _compiled_text(jax.vmap(lambda b: loop(elementwise, (0.5, b), jnp.ones(3))), bs)
-    assert 'xla_cpu_small_call="true"' in text
+    assert _hoisted_in(text)
 
     # A reduction over more than HOIST_MAX_REDUCED elements of the batch: XLA would make
     # it a kernel the older emitter lacks ("Fusion kind not implemented on CPU"). Over at
@@ -1030,7 +1048,7 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
         P = A6 if step is matmul else 0.5
         f = jax.vmap(lambda b, step=step, c0=c0, P=P: loop(step, (P, b), c0))
         text = _compiled_text(f, jnp.zeros((runs,) + c0.shape))
-        assert ('xla_cpu_small_call="true"' in text) == hoisted
+        assert _hoisted_in(text) == hoisted
         assert (" reduce(" in text) == reduces
         got = jax.jit(f)(jnp.full((runs,) + c0.shape, 0.1))
         c, want = c0, []
@@ -1042,20 +1060,21 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
     monkeypatch.undo()  # (the engine's own layouts again)
     monkeypatch.setattr(_engine, "HOIST_MAX_BYTES", 1000)  # 200 float64 runs: over
     batch = jax.vmap(lambda b: loop(elementwise, (0.5, b), jnp.ones(3)))
-    assert "xla_cpu_small_call" not in _compiled_text(batch, jnp.zeros((200, 3)))
-    assert 'xla_cpu_small_call="true"' in _compiled_text(batch, jnp.zeros((100, 3)))
+    assert not _hoisted_in(_compiled_text(batch, jnp.zeros((200, 3))))
+    assert _hoisted_in(_compiled_text(batch, jnp.zeros((100, 3))))
     monkeypatch.undo()
 
     starts = jnp.asarray(np.random.default_rng(0).normal(size=(1500, 3)))  # 12 kB a leaf
     runs = lambda b: jax.vmap(lambda c: loop(elementwise, (0.5, b), c))(starts)
     text = _compiled_text(runs, jnp.float64(0.1))
-    assert 'xla_cpu_small_call="true"' in text
+    assert _hoisted_in(text)
     got = jax.jit(runs)(jnp.float64(0.1))
     c, want = starts, []
     for _ in range(5):
         c = jnp.tanh(0.5 * c + 0.1)
         want.append(c)
-    np.testing.assert_allclose(got, jnp.stack(want, 1), rtol=1e-14)
+    # (round-off: JAX 0.11's XLA differs from the eager steps in the last bit or two)
+    np.testing.assert_allclose(got, jnp.stack(want, 1), rtol=1e-12)
 
 
 def _reductions(jaxpr) -> list:
@@ -1098,10 +1117,21 @@ def test_small_reductions_written_out_term_by_term():
 
 
 def test_hoisting_can_be_turned_off_from_the_environment():
-    """``SO3JAX_HOIST_LOOPS=0``: the way out should XLA's older emitter refuse a loop."""
+    """``SO3JAX_HOIST_LOOPS=0``: the way out should XLA's older emitter refuse a loop;
+    ``1`` asks for hoisting on a jaxlib the suite has not passed on. Unset, loops are
+    hoisted only on the jaxlib releases of `HOIST_VERIFIED` (a loop XLA's older emitter
+    cannot compile aborts the process, S49)."""
+    import jaxlib
+
     code = "import so3jax._engine as e; print(e.HOIST_LOOPS)"
-    for value, want in (("0", "False"), ("1", "True")):
-        env = dict(os.environ, SO3JAX_HOIST_LOOPS=value, JAX_PLATFORMS="cpu")
+    release = tuple(int(x) for x in jaxlib.__version__.split(".")[:2])
+    unset = str(release in _engine.HOIST_VERIFIED)
+    assert unset == str(_engine.hoisting_verified())
+    for value, want in (("0", "False"), ("1", "True"), (None, unset)):
+        env = dict(os.environ, JAX_PLATFORMS="cpu")
+        env.pop("SO3JAX_HOIST_LOOPS", None)
+        if value is not None:
+            env["SO3JAX_HOIST_LOOPS"] = value
         out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
         assert out.stdout.strip() == want, out.stderr
 

@@ -607,7 +607,11 @@ def test_sincos_matches_numpy(dtype):
             [0.0, -0.0],
         ]
     ).astype(dtype)
-    s, c = jax.jit(_so3._sincos)(jnp.asarray(x))
+    # XLA's default level, whatever the suite's XLA_FLAGS say (JAX 0.11's emitters leave
+    # the product unfused at level 0; 0.10's older ones, which the suite asks for there,
+    # fuse it at any level)
+    options = {"xla_backend_optimization_level": 3}
+    s, c = jax.jit(_so3._sincos, compiler_options=options)(jnp.asarray(x))
     assert s.dtype == c.dtype == dtype
     xs = f64(x)
     eps = EPS[dtype]

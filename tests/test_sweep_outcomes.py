@@ -186,8 +186,12 @@ def test_chunks_resume_and_old_folders_with_outcomes(stiff, tmp_path):
     with pytest.warns(UserWarning):
         resumed = s.sweep(s.scenes.seed(), K_R, [2.54, 40.0], on_chunk=stop, **kw)
     assert calls == [1]
+    # (atol: a chunk of 4 runs and the fixture's batch may take different programs, whose
+    # round-off differs in the last bits of final_psi's small values; JAX 0.12 saw 4e-16)
     for f in ("final_psi", "settling_time", "peak_torque", "cost", "status_code", "outcome"):
-        np.testing.assert_allclose(getattr(resumed, f), getattr(stiff, f), rtol=1e-12, err_msg=f)
+        np.testing.assert_allclose(
+            getattr(resumed, f), getattr(stiff, f), rtol=1e-12, atol=1e-14, err_msg=f
+        )
     np.testing.assert_array_equal(resumed.run_dt, stiff.run_dt)
     # Save / load keeps the new fields; a file or a chunk folder of the older format is refused.
     stiff.save(tmp_path / "r.npz")
