@@ -1004,6 +1004,30 @@ def test_hoisted_loops_equal_the_default_runtime(runs, monkeypatch):
     jax.clear_caches()
 
 
+def test_hoisted_call_returns_its_inputs(monkeypatch):
+    """The call `_hoisted` makes returns its inputs after the loop's outputs, so they stay
+    live to its end: on JAX 0.11 and 0.12 XLA otherwise gave an input's memory to a value
+    inside the loop, and its older emitter aborted the process (S49; CI's JAX 0.10 never
+    did, so this checks the program's form). Traces only."""
+    monkeypatch.setattr(_engine, "HOIST_LOOPS", True)
+    step = lambda P, c: jnp.tanh(P[0] * c + P[1])
+    f = lambda b: _engine.run(step, lambda P, c: c, (0.5, b), jnp.ones(3), 5)[0]
+
+    def calls(jaxpr):
+        out = []
+        for e in jaxpr.eqns:
+            if e.params.get("name") == "call" and "jaxpr" in e.params:
+                out.append(e)
+            for sub in sc.subjaxprs(e.params):
+                out += calls(sub)
+        return out
+
+    (call,) = calls(jax.make_jaxpr(jax.vmap(f))(jnp.zeros((20, 3))).jaxpr)
+    inner = call.params["jaxpr"].jaxpr
+    n = len(inner.invars)
+    assert len(inner.outvars) > n and list(inner.outvars[-n:]) == list(inner.invars)
+
+
 @needs_hoisting
 def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
     """No hoisting for a loop with a dot (XLA's older emitter refuses it), nor with a
