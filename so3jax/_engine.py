@@ -1186,7 +1186,7 @@ def _unrolled_param(v):
         return _unrolled(v)
     if isinstance(v, jex_core.Jaxpr) and not v.constvars and _has_small_reduction(v):
         out = _UNROLLED_MEMO.get(v)
-        if out is None:
+        if out is None:  # () for "keep v": the memo must not hold its own key
             closed = _unrolled(jex_core.ClosedJaxpr(v, ()))
             out = _UNROLLED_MEMO[v] = () if closed.consts else (closed.jaxpr,)
         return out[0] if out else v
