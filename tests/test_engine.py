@@ -710,6 +710,42 @@ def test_scalarized_jacobian_without_cuts(monkeypatch):
     assert _rel(_jit_grad(cost("auto"))(K0), ref) < 1e-10
 
 
+def test_batch_tiles_policy(monkeypatch):
+    """`_engine.batch_tiles`: the Jacobian program over a CPU batch of 96 runs or more runs in
+    tiles of about 64 (multiples of 8) that cover the batch; other programs, smaller
+    batches and other backends run whole."""
+    assert _engine.batch_tiles("jacobian", 256) == (4, 64)
+    assert _engine.batch_tiles("jacobian", 100) == (2, 56)
+    assert _engine.batch_tiles("jacobian", 95) == (1, 95)
+    assert _engine.batch_tiles("run", 4096) == (1, 4096)
+    for B in range(96, 1100, 7):
+        n, size = _engine.batch_tiles("jacobian", B)
+        assert size % 8 == 0 and n * size >= B > (n - 1) * size and 40 <= size <= 96
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert _engine.batch_tiles("jacobian", 256) == (1, 256)
+
+
+def test_tiled_jacobian_equals_autodiff(monkeypatch):
+    """A batch whose Jacobian program runs in tiles (`_engine._in_tiles`; here 3 tiles of 8
+    over 50 runs, the last padded with a copy of the last run): ``grad``, ``jacfwd`` and
+    ``jax.hessian`` equal JAX's autodiff, and the tiles are in the program (a loop over 3
+    tiles whose tangents are ``(2, 17)`` arrays)."""
+    monkeypatch.setitem(_engine.BATCH_TILE, "jacobian", 16)
+    monkeypatch.setattr(_engine, "TILE_MULTIPLE", 1)
+    B = 50
+    assert _engine.batch_tiles("jacobian", B) == (3, 17)
+    cost = _seed_mean_cost(jax.random.PRNGKey(8), B, N - 1)
+    ref = _jit_grad(cost("autodiff"))(K0)
+    f = _jit_grad(cost("auto"))
+    hlo = f.lower(K0).as_text()
+    assert "tensor<2x17xf64>" in hlo and f"tensor<2x{B}xf64>" not in hlo
+    assert _rel(f(K0), ref) < 1e-10
+    assert _rel(jax.jit(jax.jacfwd(cost("auto")))(K0), ref) < 1e-10
+    H = jax.jit(jax.hessian(cost("auto")))(K0)
+    H_ref = jax.jit(jax.hessian(cost("autodiff")))(K0)
+    assert _rel(H, H_ref) < 1e-10
+
+
 def test_scalarized_jacobian_of_trajectories():
     """The scalarized one-pass Jacobian (32 runs) of a cost on whole trajectories: each
     saved point has many components (``R``, ``Omega``, ``Rd``, ``M``, ``e_R``,
