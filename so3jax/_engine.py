@@ -40,7 +40,8 @@ is, with no flag for the user to know:
   its Jacobian in **one pass**: the primal once, the unit tangents batched over
   it as columns (`_Loop.jac_array` / `_Loop.jac_scalar`, scalarized for
   batches of 16 runs or more, with the columns the outer axis of every tangent
-  component: `_columns_outside`). The tangent is that Jacobian times the input
+  component: `_columns_outside`; on a CPU a large batch runs in tiles of a few
+  dozen runs whose values stay in cache, `BATCH_TILE`). The tangent is that Jacobian times the input
   tangent: ``jacfwd`` reads the columns, and ``grad`` is JAX's transpose of
   the contraction, with nothing stored per step beyond the saved points and
   nothing recomputed. Through more scalars (DiffTune's twelve gains) both modes
@@ -525,29 +526,35 @@ def sweep_chunk(devices, n_saved: int, itemsize: int) -> int:
     return max(SWEEP_CHUNK["cpu"], min(SWEEP_CHUNK["gpu"], fits)) * len(devices)
 
 
-#: On a CPU, a batch of these programs runs in tiles of about this many runs, one
-#: tile after the other (`_in_tiles`): from 96 runs, in ``round(runs / tile)`` tiles,
-#: each a multiple of `TILE_MULTIPLE` runs. ``"jacobian"``: a tangent column reads
-#: many materialized values per operation (S48), and 64 runs' values stay in the
-#: core's cache where 256 runs' do not. ``grad`` of the seed's mean cost over 256
-#: starts (RKMK4, 1000 steps, 2-core CPU, S50, fresh processes, min of 15): 61.3-61.7
-#: ms in tiles of 64 against 74.5-75.7 ms whole (32: 64.6-67.6, 128: 64.4-67.2); the
-#: forward pass, 18.5-19.6 ms, gains nothing from tiles (per run 0.075 ms at 64 runs,
-#: 0.072 at 256).
-BATCH_TILE = {"jacobian": 64}
+#: On a CPU, a batch of these programs runs in tiles, one tile after the other
+#: (`_in_tiles`), each of about this many values per scalar component: a tile of ``m``
+#: runs of a Jacobian program with ``n`` columns holds ``m (1 + n)`` (the primal and its
+#: tangents). A tangent column reads many materialized values per operation (S48), and
+#: a tile's stay in the core's cache where a whole batch's do not. Batches run in
+#: ``round(runs / m)`` tiles for ``m`` the power of 2 nearest ``192 / (1 + n)``, each a
+#: multiple of `TILE_MULTIPLE` runs (from 96 runs for the seed's two gains). Seed mean
+#: cost over 256 starts (RKMK4, 1000 steps, 2-core CPU, S50, fresh processes, min of
+#: 15): ``grad`` through the two gains 61.3-61.7 ms in tiles of 64 against 74.5-75.7 ms
+#: whole (32: 64.6-67.6, 128: 64.4-67.2); through six per-axis gains 135.6-145.8 ms in
+#: tiles of 32 against 185.0-189.2 ms whole (16: 162-165, 24: 155-159, 64: 154-171);
+#: through one, level (128: 41.7-42.7, 64: 42.5-45.3, whole 44.6-46.1 ms). The forward
+#: pass gains nothing from tiles (per run 0.075 ms at 64 runs, 0.072 at 256).
+BATCH_TILE = {"jacobian": 192}
 
 #: Tiles are a multiple of this many runs (a vector register's float64 lanes with
 #: AVX-512): tiles of 52 and 86 runs were slower than 64.
 TILE_MULTIPLE = 8
 
 
-def batch_tiles(what: str, runs: int) -> tuple[int, int]:
-    """``(n, size)``: a batch of ``runs`` runs of program ``what`` runs as ``n`` tiles
-    of ``size`` runs (`BATCH_TILE`); ``(1, runs)`` untiled."""
-    tile = BATCH_TILE.get(what)
-    if tile is None or jax.default_backend() != "cpu":
+def batch_tiles(what: str, runs: int, columns: int = 0) -> tuple[int, int]:
+    """``(n, size)``: a batch of ``runs`` runs of program ``what`` with ``columns``
+    tangent columns runs as ``n`` tiles of ``size`` runs (`BATCH_TILE`); ``(1, runs)``
+    untiled."""
+    values = BATCH_TILE.get(what)
+    if values is None or jax.default_backend() != "cpu":
         return 1, runs
     scalar_from, _ = batched_layout(what)
+    tile = 2 ** round(math.log2(values / (1 + columns)))
     n = round(runs / tile)
     if scalar_from is None or runs < scalar_from or n < 2:
         return 1, runs
@@ -928,7 +935,8 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
 
     @fn.def_vmap
     def _rule(axis_size, in_batched, *args):
-        n, size = batch_tiles(what, axis_size)
+        columns = _column_count(args, in_batched, array_fn.out_tree) if what == "jacobian" else 0
+        n, size = batch_tiles(what, axis_size, columns)
         if n > 1:
             return _in_tiles(_traced_rule, axis_size, n, size, in_batched, args)
         return _traced_rule(axis_size, in_batched, *args)
@@ -1033,6 +1041,13 @@ def _columns_outside(runs: Callable, args, in_batched, in_cols: list, out_cols: 
         out_axes=[None if c is None else c + 1 for c in out_cols],
     )(*[x for x, a in zip(leaves, axes, strict=True) if a is not None])
     return jax.tree.unflatten(out_tree[0], outs)
+
+
+def _column_count(args, in_batched, out_tree) -> int:
+    """The number of tangent columns of a batched call of the Jacobian program."""
+    in_cols, _ = _jacobian_columns(args, out_tree)
+    pairs = zip(jax.tree.leaves(args), jax.tree.leaves(in_batched), in_cols, strict=True)
+    return next((jnp.shape(x)[c + int(b)] for x, b, c in pairs if c is not None), 0)
 
 
 def _jacobian_columns(args, out_tree) -> tuple[list, list]:

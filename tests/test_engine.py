@@ -711,18 +711,20 @@ def test_scalarized_jacobian_without_cuts(monkeypatch):
 
 
 def test_batch_tiles_policy(monkeypatch):
-    """`_engine.batch_tiles`: the Jacobian program over a CPU batch of 96 runs or more runs in
-    tiles of about 64 (multiples of 8) that cover the batch; other programs, smaller
-    batches and other backends run whole."""
-    assert _engine.batch_tiles("jacobian", 256) == (4, 64)
-    assert _engine.batch_tiles("jacobian", 100) == (2, 56)
-    assert _engine.batch_tiles("jacobian", 95) == (1, 95)
+    """`_engine.batch_tiles`: the Jacobian program over a CPU batch runs in tiles of about
+    ``192 / (1 + columns)`` runs (multiples of 8) that cover the batch: 64 for two gains
+    (from 96 runs), 32 for six; other programs, smaller batches and other backends run
+    whole."""
+    assert _engine.batch_tiles("jacobian", 256, 2) == (4, 64)
+    assert _engine.batch_tiles("jacobian", 256, 6) == (8, 32)
+    assert _engine.batch_tiles("jacobian", 100, 2) == (2, 56)
+    assert _engine.batch_tiles("jacobian", 95, 2) == (1, 95)
     assert _engine.batch_tiles("run", 4096) == (1, 4096)
     for B in range(96, 1100, 7):
-        n, size = _engine.batch_tiles("jacobian", B)
+        n, size = _engine.batch_tiles("jacobian", B, 2)
         assert size % 8 == 0 and n * size >= B > (n - 1) * size and 40 <= size <= 96
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    assert _engine.batch_tiles("jacobian", 256) == (1, 256)
+    assert _engine.batch_tiles("jacobian", 256, 2) == (1, 256)
 
 
 def test_tiled_jacobian_equals_autodiff(monkeypatch):
@@ -730,10 +732,10 @@ def test_tiled_jacobian_equals_autodiff(monkeypatch):
     over 50 runs, the last padded with a copy of the last run): ``grad``, ``jacfwd`` and
     ``jax.hessian`` equal JAX's autodiff, and the tiles are in the program (a loop over 3
     tiles whose tangents are ``(2, 17)`` arrays)."""
-    monkeypatch.setitem(_engine.BATCH_TILE, "jacobian", 16)
+    monkeypatch.setitem(_engine.BATCH_TILE, "jacobian", 48)  # 16 runs a tile for 2 columns
     monkeypatch.setattr(_engine, "TILE_MULTIPLE", 1)
     B = 50
-    assert _engine.batch_tiles("jacobian", B) == (3, 17)
+    assert _engine.batch_tiles("jacobian", B, 2) == (3, 17)
     cost = _seed_mean_cost(jax.random.PRNGKey(8), B, N - 1)
     ref = _jit_grad(cost("autodiff"))(K0)
     f = _jit_grad(cost("auto"))
