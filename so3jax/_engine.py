@@ -541,17 +541,27 @@ def sweep_chunk(devices, n_saved: int, itemsize: int) -> int:
 #: pass gains nothing from tiles (per run 0.075 ms at 64 runs, 0.072 at 256).
 BATCH_TILE = {"jacobian": 192}
 
+#: Tiles only for runs that observe at most this many scalars per saved point (a cost's
+#: integrand, not a whole trajectory): where the saved points and their columns dominate,
+#: tiles did not pay. ``grad`` of a cost on the seed's trajectories over 256 starts
+#: (``R``, ``Rd``, ``Omega``, ... saved every step): 166.6 against 164.0 ms (the last
+#: point used) and 208.6 against 200.1 ms (every point), with 158 against 123 MiB and 176
+#: against 141 MiB of XLA temp memory (S50).
+TILE_MAX_OBSERVED = 8
+
 #: Tiles are a multiple of this many runs (a vector register's float64 lanes with
 #: AVX-512): tiles of 52 and 86 runs were slower than 64.
 TILE_MULTIPLE = 8
 
 
-def batch_tiles(what: str, runs: int, columns: int = 0) -> tuple[int, int]:
+def batch_tiles(what: str, runs: int, columns: int = 0, observed: int = 1) -> tuple[int, int]:
     """``(n, size)``: a batch of ``runs`` runs of program ``what`` with ``columns``
-    tangent columns runs as ``n`` tiles of ``size`` runs (`BATCH_TILE`); ``(1, runs)``
-    untiled."""
+    tangent columns, observing ``observed`` scalars per saved point, runs as ``n`` tiles
+    of ``size`` runs (`BATCH_TILE`); ``(1, runs)`` untiled."""
     values = BATCH_TILE.get(what)
-    if values is None or jax.default_backend() != "cpu":
+    if values is None or jax.default_backend() != "cpu" or jax.device_count() > 1:
+        return 1, runs
+    if observed > TILE_MAX_OBSERVED:
         return 1, runs
     scalar_from, _ = batched_layout(what)
     tile = 2 ** round(math.log2(values / (1 + columns)))
@@ -935,8 +945,12 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
 
     @fn.def_vmap
     def _rule(axis_size, in_batched, *args):
-        columns = _column_count(args, in_batched, array_fn.out_tree) if what == "jacobian" else 0
-        n, size = batch_tiles(what, axis_size, columns)
+        columns, observed = 0, 1
+        if what == "jacobian":
+            columns = _column_count(args, in_batched, array_fn.out_tree)
+            ys = array_fn.closed.out_avals[: array_fn.out_tree.children()[0].num_leaves]
+            observed = sum(math.prod(y.shape[1:]) for y in ys)
+        n, size = batch_tiles(what, axis_size, columns, observed)
         if n > 1:
             return _in_tiles(_traced_rule, axis_size, n, size, in_batched, args)
         return _traced_rule(axis_size, in_batched, *args)

@@ -713,13 +713,14 @@ def test_scalarized_jacobian_without_cuts(monkeypatch):
 def test_batch_tiles_policy(monkeypatch):
     """`_engine.batch_tiles`: the Jacobian program over a CPU batch runs in tiles of about
     ``192 / (1 + columns)`` runs (multiples of 8) that cover the batch: 64 for two gains
-    (from 96 runs), 32 for six; other programs, smaller batches and other backends run
-    whole."""
+    (from 96 runs), 32 for six; other programs, smaller batches, runs that observe more
+    than a few scalars per saved point and other backends run whole."""
     assert _engine.batch_tiles("jacobian", 256, 2) == (4, 64)
     assert _engine.batch_tiles("jacobian", 256, 6) == (8, 32)
     assert _engine.batch_tiles("jacobian", 100, 2) == (2, 56)
     assert _engine.batch_tiles("jacobian", 95, 2) == (1, 95)
     assert _engine.batch_tiles("run", 4096) == (1, 4096)
+    assert _engine.batch_tiles("jacobian", 256, 2, observed=40) == (1, 256)  # trajectories
     for B in range(96, 1100, 7):
         n, size = _engine.batch_tiles("jacobian", B, 2)
         assert size % 8 == 0 and n * size >= B > (n - 1) * size and 40 <= size <= 96
