@@ -24,7 +24,7 @@ shift $(($# < 2 ? $# : 2))
 steps=" ${*:-throughput tune equal sweep sweep-scalarized} "
 here=$(cd "$(dirname "$0")" && pwd)
 res=$out/results
-mkdir -p "$res/tp" "$res/tune" "$res/sweep"
+mkdir -p "$res"/{tp,tune,sweep,sweep-scalarized,hessian,derivatives}
 log=$out/gpu.log
 export PYTHONUNBUFFERED=1 PYTHONPATH=$here/..:${PYTHONPATH:-}
 py=${PYTHON:-python3}
@@ -62,10 +62,8 @@ step sweep "${lim[3]}" "gain sweep" $py "$here/sweep.py" --out "$res/sweep" --ch
 # The same sweep forced scalarized (`sweep(..., scalarize=True)`): on a GPU `sweep` runs
 # the array program (S36, H100: a first 65,536-run sweep 11.5 s against 23.4 s, float64;
 # the compiled one 0.44 s against 0.30 s); this keeps both columns measured.
-mkdir -p "$res/sweep-scalarized"
 step sweep-scalarized "${lim[3]}" "gain sweep, scalarized program" $py "$here/sweep.py" \
   --out "$res/sweep-scalarized" --chunk-size $chunk --scalarized $q
-mkdir -p "$res/hessian" "$res/derivatives"
 step hessian "${lim[4]}" "Hessian" $py "$here/tune.py" $q --out "$res/hessian" --batches $hb \
   --horizons 1000 --variants "Hessian (default)" "Hessian, autodiff"
 step derivatives "${lim[5]}" "derivatives, engine and array program" $py "$here/layouts.py" $q \

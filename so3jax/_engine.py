@@ -538,7 +538,8 @@ def sweep_chunk(devices, n_saved: int, itemsize: int) -> int:
 #: whole (32: 64.6-67.6, 128: 64.4-67.2); through six per-axis gains 135.6-145.8 ms in
 #: tiles of 32 against 185.0-189.2 ms whole (16: 162-165, 24: 155-159, 64: 154-171);
 #: through one, level (128: 41.7-42.7, 64: 42.5-45.3, whole 44.6-46.1 ms). The forward
-#: pass gains nothing from tiles (per run 0.075 ms at 64 runs, 0.072 at 256).
+#: pass over 256 runs gains nothing from tiles (per run 0.075 ms at 64 runs, 0.072 at
+#: 256); forward tiles for larger batches are measured in `benchmarks/README.md`, not kept.
 BATCH_TILE = {"jacobian": 192}
 
 #: Tiles only for runs that observe at most this many scalars per saved point (a cost's
@@ -559,9 +560,7 @@ def batch_tiles(what: str, runs: int, columns: int = 0, observed: int = 1) -> tu
     tangent columns, observing ``observed`` scalars per saved point, runs as ``n`` tiles
     of ``size`` runs (`BATCH_TILE`); ``(1, runs)`` untiled."""
     values = BATCH_TILE.get(what)
-    if values is None or jax.default_backend() != "cpu" or jax.device_count() > 1:
-        return 1, runs
-    if observed > TILE_MAX_OBSERVED:
+    if values is None or not _one_cpu_device() or observed > TILE_MAX_OBSERVED:
         return 1, runs
     scalar_from, _ = batched_layout(what)
     tile = 2 ** round(math.log2(values / (1 + columns)))
@@ -573,6 +572,12 @@ def batch_tiles(what: str, runs: int, columns: int = 0, observed: int = 1) -> tu
     if size < scalar_from:  # a tile runs the program a batch of its size would
         return 1, runs
     return -(-runs // size), size
+
+
+def _one_cpu_device() -> bool:
+    """Whether JAX runs on one CPU device: where the engine's CPU-only choices (hoisted
+    loops, tiles) apply. A sharded program is XLA's to partition."""
+    return jax.default_backend() == "cpu" and jax.device_count() == 1
 
 
 def batched_layout(what: str) -> tuple:
@@ -1416,7 +1421,7 @@ def _hoisted(loop: Callable, *args):
     runs, hoist, reductions = _TRACING[-1]
     if set_xla_metadata is None or not HOIST_LOOPS or not hoist:
         return loop(*args)
-    if jax.default_backend() != "cpu" or jax.device_count() > 1:
+    if not _one_cpu_device():
         return loop(*args)
     leaves = jax.tree.leaves(args)
     per_run = max((jnp.size(x) * jnp.result_type(x).itemsize for x in leaves), default=0)

@@ -729,7 +729,7 @@ def test_batch_tiles_policy(monkeypatch):
 
 
 def test_tiled_jacobian_equals_autodiff(monkeypatch):
-    """A batch whose Jacobian program runs in tiles (`_engine._in_tiles`; here 3 tiles of 8
+    """A batch whose Jacobian program runs in tiles (`_engine._in_tiles`; here 3 tiles of 17
     over 50 runs, the last padded with a copy of the last run): ``grad``, ``jacfwd`` and
     ``jax.hessian`` equal JAX's autodiff, and the tiles are in the program (a loop over 3
     tiles whose tangents are ``(2, 17)`` arrays)."""
