@@ -91,9 +91,18 @@ class MechanicalScene(Scene):
         """Body rates of the kinematic rotations ``y.R[1:]``, shape `(k - 1, 3)`."""
         return None
 
+    def angular_acceleration(self, t: Array, y: LieState) -> Array:
+        """``Omega' = J^-1 (torque - Omega x J Omega)``, shape `(3,)`.
+
+        A scene whose torque cancels part of Euler's equations in closed form (the
+        geometric controller's feedforward: `Tracking`) overrides this with the
+        closed-loop acceleration, the same to round-off in fewer operations.
+        """
+        return self.body.euler_rhs(y.x[..., :3], self.torque(t, y))
+
     def vector_field(self, t: Array, y: LieState) -> LieTangent:
         Omega = y.x[..., :3]
-        dOmega = self.body.euler_rhs(Omega, self.torque(t, y))
+        dOmega = self.angular_acceleration(t, y)
         xi = Omega[..., None, :]
         kin = self.kinematic_rates(t, y)
         if kin is not None:

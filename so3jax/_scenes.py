@@ -118,6 +118,16 @@ class Tracking(MechanicalScene):
         R, Rd, Omega, mem, Od, dOd = self._parts(t, y)
         return self.controller(t, self.body, R, Omega, Rd, Od, dOd, self._memory(mem))
 
+    def angular_acceleration(self, t, y):
+        # The controller's closed loop (`AbstractController.angular_acceleration`),
+        # unless a subclass changed the torque (`so3jax._sweep_params.Disturbed`).
+        if type(self).torque is not Tracking.torque:
+            return super().angular_acceleration(t, y)
+        R, Rd, Omega, mem, Od, dOd = self._parts(t, y)
+        return self.controller.angular_acceleration(
+            t, self.body, R, Omega, Rd, Od, dOd, self._memory(mem)
+        )
+
     def kinematic_rates(self, t, y):
         Omega_d, _ = self._reference(t, y.R.dtype)
         return Omega_d[..., None, :]

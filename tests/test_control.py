@@ -72,6 +72,88 @@ def test_geometric_torque_matches_numpy(vector_gains):
         np.testing.assert_allclose(eO[i], eO_ref, rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.parametrize("vector_gains", [False, True])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_geometric_closed_loop_acceleration(vector_gains, dtype):
+    """The controller's closed form of ``Omega'`` equals ``J^-1 (M - Omega x J Omega)`` of
+    its torque, computed in NumPy (a full inertia tensor), and so do its derivatives."""
+    rng = np.random.default_rng(11)
+    J = random_inertia(rng)
+    body = s.RigidBody(J.astype(dtype))
+    kR = rng.uniform(1, 10, size=3) if vector_gains else 8.81
+    kO = rng.uniform(1, 5, size=3) if vector_gains else 2.54
+    ctrl = s.GeometricController(s.GeometricGains(np.asarray(kR, dtype), np.asarray(kO, dtype)))
+    R, Om, Rd, Od, dOd = (a.astype(dtype) for a in random_inputs(rng, 20))
+    acc = eqx.filter_jit(ctrl.angular_acceleration)(0.0, body, R, Om, Rd, Od, dOd)
+    assert acc.dtype == dtype and acc.shape == (20, 3)
+    tol = 1e-12 if dtype == np.float64 else 2e-5
+    for i in range(20):
+        _, _, M = np_torque(kR, kO, J, R[i], Om[i], Rd[i], Od[i], dOd[i])
+        ref = np.linalg.solve(J, M - np.cross(Om[i], J @ Om[i]))
+        np.testing.assert_allclose(acc[i], ref, rtol=tol, atol=tol * np.abs(ref).max())
+
+    # Differentiated in the gains and the inertia: the same as the open form's.
+    def open_form(kR, kO, Jm):
+        b = s.RigidBody(Jm)
+        M = s.geometric_torque(s.GeometricGains(kR, kO), b, R[0], Om[0], Rd[0], Od[0], dOd[0])
+        return b.euler_rhs(Om[0], M)
+
+    def closed(kR, kO, Jm):
+        c = s.GeometricController(s.GeometricGains(kR, kO))
+        return c.angular_acceleration(0.0, s.RigidBody(Jm), R[0], Om[0], Rd[0], Od[0], dOd[0])
+
+    if dtype == np.float64:
+        args = (jnp.asarray(kR, dtype), jnp.asarray(kO, dtype), jnp.asarray(J))
+        d_open = jax.jit(jax.jacfwd(open_form, argnums=(0, 1, 2)))(*args)
+        d_closed = jax.jit(jax.jacfwd(closed, argnums=(0, 1, 2)))(*args)
+        for a, b in zip(d_closed, d_open, strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10)
+
+
+def test_tracking_scene_integrates_the_closed_loop():
+    """`Tracking.vector_field` integrates ``J^-1 (M - Omega x J Omega)`` with its `torque`:
+    the geometric controller's closed form, the default for other controllers, and a
+    subclass's changed torque (a disturbance) taken as it is."""
+    from so3jax._state import LieState
+    from so3jax._sweep_params import Disturbed
+
+    rng = np.random.default_rng(12)
+    R, Om, Rd, _, _ = random_inputs(rng, 1)
+    J = random_inertia(rng)
+    y = LieState(jnp.stack([R[0], Rd[0]]), jnp.asarray(Om[0]))
+    t = jnp.asarray(0.7)
+    seed = s.scenes.seed()
+    geometric = s.scenes.tracking(
+        J, s.GeometricGains(8.81, 2.54), R[0], Om[0], Rd[0], seed.reference
+    )
+    quat = s.scenes.tracking(J, s.QuaternionController(3.0, 1.5), R[0], Om[0], Rd[0])
+    disturbed = Disturbed(
+        body=geometric.body,
+        controller=geometric.controller,
+        reference=geometric.reference,
+        y0=geometric.y0,
+        disturbance=jnp.array([0.3, -0.2, 0.1]),
+    )
+
+    @jax.jit
+    def parts(scene, y):
+        return scene.vector_field(t, y).dx[:3], scene.torque(t, y)
+
+    for scene, d in ((geometric, 0.0), (disturbed, disturbed.disturbance)):
+        dOmega, M = parts(scene, y)
+        ref = np.linalg.solve(J, np.asarray(M) - np.cross(Om[0], J @ Om[0]))
+        np.testing.assert_allclose(dOmega, ref, rtol=1e-12, atol=1e-12)
+        if scene is disturbed:  # the disturbance reaches the dynamics
+            undisturbed = parts(geometric, y)[0]
+            np.testing.assert_allclose(
+                dOmega - undisturbed, np.linalg.solve(J, d), rtol=1e-10, atol=1e-12
+            )
+    yq = LieState(y.R, jnp.concatenate([y.x, quat.y0.x[3:]]))
+    dOmega, M = parts(quat, yq)
+    ref = np.linalg.solve(J, np.asarray(M) - np.cross(Om[0], J @ Om[0]))
+    np.testing.assert_allclose(dOmega, ref, rtol=1e-12, atol=1e-12)
+
+
 def test_attitude_error_is_sin_angle_axis():
     rng = np.random.default_rng(1)
     rotvec = Rotation.random(10, random_state=rng).as_rotvec()
