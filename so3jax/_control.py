@@ -110,23 +110,27 @@ def _geometric_torque(gains, body, R, Omega, Rd, Omega_d, dOmega_d):
     return -gains.k_R * e_R - gains.k_Omega * (Omega - a) + ff
 
 
-def _geometric_acceleration(gains, body, R, Omega, Rd, Omega_d, dOmega_d):
-    """``Omega'`` of a body under its own `_geometric_torque`, with the gyroscopic terms
-    cancelled.
+def _closed_loop(body: RigidBody, feedback, Omega, a, b):
+    """``Omega'`` under the torque ``feedback + _feedforward(body, Omega, a, b)``, with the
+    gyroscopic terms cancelled.
 
-    ``J Omega' = M - Omega x J Omega`` with ``M = -k_R e_R - k_Omega e_Omega + Omega x J
-    Omega - J (hat(Omega) a - b)``: the feedforward cancels the gyroscopic term (the
-    error dynamics ``J e_Omega' = -k_R e_R - k_Omega e_Omega`` of Lee, Leok &
-    McClamroch, CDC 2010), so ``Omega' = J^-1 (-k_R e_R - k_Omega e_Omega - J (hat(Omega)
-    a - b))``. The same function of ``body.inertia`` and ``body.inertia_inv`` as
-    `RigidBody.euler_rhs` of the torque, to round-off, derivatives included (also when
-    a caller replaced one of the two leaves: ``J^-1 J`` is not simplified), without
-    forming ``Omega x J Omega`` twice: 3 fewer products of a matrix with a vector and 2
-    fewer cross products per evaluation, per run and per tangent column.
+    ``J Omega' = M - Omega x J Omega`` and the feedforward is ``Omega x J Omega - J
+    (hat(Omega) a - b)``, so ``Omega' = J^-1 (feedback - J (hat(Omega) a - b))`` (for the
+    geometric controller, the error dynamics ``J e_Omega' = -k_R e_R - k_Omega e_Omega``
+    of Lee, Leok & McClamroch, CDC 2010). The same function of ``body.inertia`` and
+    ``body.inertia_inv`` as `RigidBody.euler_rhs` of the torque, to round-off,
+    derivatives included (also when a caller replaced one of the two leaves: ``J^-1 J``
+    is not simplified), without forming ``Omega x J Omega`` twice: 2 fewer products of a
+    matrix with a vector and 2 fewer cross products per evaluation, per run and per
+    tangent column.
     """
-    e_R, (a, b) = _errors_and_rates(R, Rd, (Omega_d, dOmega_d))
-    feedback = -gains.k_R * e_R - gains.k_Omega * (Omega - a)
     return _mv(body.inertia_inv, feedback - _mv(body.inertia, _cross(Omega, a) - b))
+
+
+def _geometric_acceleration(gains, body, R, Omega, Rd, Omega_d, dOmega_d):
+    """``Omega'`` of a body under its own `_geometric_torque` (`_closed_loop`)."""
+    e_R, (a, b) = _errors_and_rates(R, Rd, (Omega_d, dOmega_d))
+    return _closed_loop(body, -gains.k_R * e_R - gains.k_Omega * (Omega - a), Omega, a, b)
 
 
 def tracking_errors(R: Rot, Omega: Vec3, Rd: Rot, Omega_d: Vec3) -> tuple[Vec3, Vec3]:
@@ -231,7 +235,8 @@ class AbstractController(eqx.Module):
 
         What a `Tracking` scene integrates (its `Tracking.torque` unchanged). A
         controller whose torque cancels terms of Euler's equations overrides it with
-        the closed form (`GeometricController`); the default forms ``M`` and applies
+        the closed form (`GeometricController`, `QuaternionController`: their
+        feedforward's ``Omega x J Omega``); the default forms ``M`` and applies
         `RigidBody.euler_rhs`.
         """
         return body.euler_rhs(Omega, self(t, body, R, Omega, Rd, Omega_d, dOmega_d, memory))
@@ -251,6 +256,11 @@ class AbstractController(eqx.Module):
 
 class GeometricController(AbstractController):
     """`geometric_torque` as a pluggable controller (no memory).
+
+    A `Tracking` scene integrates its closed loop with the gyroscopic terms cancelled
+    (`angular_acceleration`: the torque's feedforward adds ``Omega x J Omega``, which
+    Euler's equations subtract), the same to round-off in fewer operations; the saved
+    ``M`` is the torque.
 
     **Arguments:**
 
@@ -330,15 +340,22 @@ class QuaternionController(AbstractController):
     def _quat(self, R, Rd, memory):
         return _align(_to_quat(_mm(_mT(Rd), R)), memory[..., 1:5])
 
-    def __call__(self, t, body, R, Omega, Rd, Omega_d, dOmega_d, memory=None):
+    def _feedback(self, R, Omega, Rd, Omega_d, dOmega_d, memory):
+        """``(-k_q h q_v - k_Omega e_Omega, a, b)`` (`_feedforward`'s ``a``, ``b``)."""
         if memory is None:
             raise ValueError("QuaternionController needs its memory [h, q_lift] (shape (5,))")
         h = memory[..., 0:1]
         q = self._quat(R, Rd, memory)
         _, (a, b) = _errors_and_rates(R, Rd, (Omega_d, dOmega_d))
-        ff = _feedforward(body, Omega, a, b)
-        e_Omega = Omega - a
-        return -self.k_q * h * q[..., 1:] - self.k_Omega * e_Omega + ff
+        return -self.k_q * h * q[..., 1:] - self.k_Omega * (Omega - a), a, b
+
+    def __call__(self, t, body, R, Omega, Rd, Omega_d, dOmega_d, memory=None):
+        feedback, a, b = self._feedback(R, Omega, Rd, Omega_d, dOmega_d, memory)
+        return feedback + _feedforward(body, Omega, a, b)
+
+    def angular_acceleration(self, t, body, R, Omega, Rd, Omega_d, dOmega_d, memory=None):
+        feedback, a, b = self._feedback(R, Omega, Rd, Omega_d, dOmega_d, memory)
+        return _closed_loop(body, feedback, Omega, a, b)
 
     def init_memory(self, R, Rd):
         q = _to_quat(_mm(_mT(Rd), R))

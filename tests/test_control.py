@@ -112,8 +112,8 @@ def test_geometric_closed_loop_acceleration(vector_gains, dtype):
 
 def test_tracking_scene_integrates_the_closed_loop():
     """`Tracking.vector_field` integrates ``J^-1 (M - Omega x J Omega)`` with its `torque`:
-    the geometric controller's closed form, the default for other controllers, and a
-    subclass's changed torque (a disturbance) taken as it is."""
+    the geometric and quaternion controllers' closed forms, the default for a controller
+    without one, and a subclass's changed torque (a disturbance) taken as it is."""
     from so3jax._state import LieState
     from so3jax._sweep_params import Disturbed
 
@@ -148,10 +148,20 @@ def test_tracking_scene_integrates_the_closed_loop():
             np.testing.assert_allclose(
                 dOmega - undisturbed, np.linalg.solve(J, d), rtol=1e-10, atol=1e-12
             )
+
+    class Damping(s.AbstractController):  # no closed form: the default path
+        c: float = 0.7
+
+        def __call__(self, t, body, R, Omega, Rd, Omega_d, dOmega_d, memory=None):
+            return -self.c * Omega
+
+    damped = s.scenes.tracking(J, Damping(), R[0], Om[0], Rd[0])
     yq = LieState(y.R, jnp.concatenate([y.x, quat.y0.x[3:]]))
-    dOmega, M = parts(quat, yq)
-    ref = np.linalg.solve(J, np.asarray(M) - np.cross(Om[0], J @ Om[0]))
-    np.testing.assert_allclose(dOmega, ref, rtol=1e-12, atol=1e-12)
+    for scene, state in ((quat, yq), (damped, y)):
+        dOmega, M = parts(scene, state)
+        ref = np.linalg.solve(J, np.asarray(M) - np.cross(Om[0], J @ Om[0]))
+        np.testing.assert_allclose(dOmega, ref, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(parts(damped, y)[1], -0.7 * Om[0])
 
 
 def test_attitude_error_is_sin_angle_axis():
