@@ -236,8 +236,8 @@ class AbstractController(eqx.Module):
         What a `Tracking` scene integrates (its `Tracking.torque` unchanged). A
         controller whose torque cancels terms of Euler's equations overrides it with
         the closed form (`GeometricController`, `QuaternionController`: their
-        feedforward's ``Omega x J Omega``); the default forms ``M`` and applies
-        `RigidBody.euler_rhs`.
+        feedforward's ``Omega x J Omega``, unless a subclass changed the torque); the
+        default forms ``M`` and applies `RigidBody.euler_rhs`.
         """
         return body.euler_rhs(Omega, self(t, body, R, Omega, Rd, Omega_d, dOmega_d, memory))
 
@@ -277,6 +277,8 @@ class GeometricController(AbstractController):
         return _geometric_torque(self.gains, body, R, Omega, Rd, Omega_d, dOmega_d)
 
     def angular_acceleration(self, t, body, R, Omega, Rd, Omega_d, dOmega_d, memory=None):
+        if type(self).__call__ is not GeometricController.__call__:  # a subclass's torque
+            return super().angular_acceleration(t, body, R, Omega, Rd, Omega_d, dOmega_d, memory)
         return _geometric_acceleration(self.gains, body, R, Omega, Rd, Omega_d, dOmega_d)
 
 
@@ -354,6 +356,8 @@ class QuaternionController(AbstractController):
         return feedback + _feedforward(body, Omega, a, b)
 
     def angular_acceleration(self, t, body, R, Omega, Rd, Omega_d, dOmega_d, memory=None):
+        if type(self).__call__ is not QuaternionController.__call__:  # a subclass's torque
+            return super().angular_acceleration(t, body, R, Omega, Rd, Omega_d, dOmega_d, memory)
         feedback, a, b = self._feedback(R, Omega, Rd, Omega_d, dOmega_d, memory)
         return _closed_loop(body, feedback, Omega, a, b)
 

@@ -113,7 +113,8 @@ def test_geometric_closed_loop_acceleration(vector_gains, dtype):
 def test_tracking_scene_integrates_the_closed_loop():
     """`Tracking.vector_field` integrates ``J^-1 (M - Omega x J Omega)`` with its `torque`:
     the geometric and quaternion controllers' closed forms, the default for a controller
-    without one, and a subclass's changed torque (a disturbance) taken as it is."""
+    without one or whose subclass changed its torque (saturation), and a scene subclass's
+    changed torque (a disturbance) taken as it is."""
     from so3jax._state import LieState
     from so3jax._sweep_params import Disturbed
 
@@ -155,9 +156,16 @@ def test_tracking_scene_integrates_the_closed_loop():
         def __call__(self, t, body, R, Omega, Rd, Omega_d, dOmega_d, memory=None):
             return -self.c * Omega
 
+    class Saturated(s.GeometricController):  # its own torque: the default path too
+        def __call__(self, t, body, R, Omega, Rd, Omega_d, dOmega_d, memory=None):
+            M = super().__call__(t, body, R, Omega, Rd, Omega_d, dOmega_d, memory)
+            return jnp.clip(M, -0.05, 0.05)
+
     damped = s.scenes.tracking(J, Damping(), R[0], Om[0], Rd[0])
+    saturated = s.scenes.tracking(J, Saturated(s.GeometricGains(8.81, 2.54)), R[0], Om[0], Rd[0])
+    assert np.abs(parts(saturated, y)[1]).max() == pytest.approx(0.05)  # it saturates
     yq = LieState(y.R, jnp.concatenate([y.x, quat.y0.x[3:]]))
-    for scene, state in ((quat, yq), (damped, y)):
+    for scene, state in ((quat, yq), (damped, y), (saturated, y)):
         dOmega, M = parts(scene, state)
         ref = np.linalg.solve(J, np.asarray(M) - np.cross(Om[0], J @ Om[0]))
         np.testing.assert_allclose(dOmega, ref, rtol=1e-12, atol=1e-12)
