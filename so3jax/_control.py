@@ -97,17 +97,26 @@ def _errors_and_rates(R, Rd, vs):
     return _vee(_mT(RtRd)), tuple(_mv(RtRd, v) for v in vs)
 
 
+def _reference_term(body: RigidBody, Omega, a, b):
+    """``J (hat(Omega) a - b)`` with ``a = R^T Rd Omega_d`` and ``b = R^T Rd dOmega_d``:
+    the part of `_feedforward` that the closed loop keeps (`_closed_loop`)."""
+    return _mv(body.inertia, _cross(Omega, a) - b)
+
+
 def _feedforward(body: RigidBody, Omega, a, b):
-    """``Omega x J Omega - J (hat(Omega) a - b)`` with ``a = R^T Rd Omega_d`` and
-    ``b = R^T Rd dOmega_d``."""
-    J = body.inertia
-    return _cross(Omega, _mv(J, Omega)) - _mv(J, _cross(Omega, a) - b)
+    """``Omega x J Omega - J (hat(Omega) a - b)`` (`_reference_term`)."""
+    return _cross(Omega, _mv(body.inertia, Omega)) - _reference_term(body, Omega, a, b)
+
+
+def _geometric_feedback(gains, R, Omega, Rd, Omega_d, dOmega_d):
+    """``(-k_R e_R - k_Omega e_Omega, a, b)``: the torque less `_feedforward`."""
+    e_R, (a, b) = _errors_and_rates(R, Rd, (Omega_d, dOmega_d))
+    return -gains.k_R * e_R - gains.k_Omega * (Omega - a), a, b
 
 
 def _geometric_torque(gains, body, R, Omega, Rd, Omega_d, dOmega_d):
-    e_R, (a, b) = _errors_and_rates(R, Rd, (Omega_d, dOmega_d))
-    ff = _feedforward(body, Omega, a, b)
-    return -gains.k_R * e_R - gains.k_Omega * (Omega - a) + ff
+    feedback, a, b = _geometric_feedback(gains, R, Omega, Rd, Omega_d, dOmega_d)
+    return feedback + _feedforward(body, Omega, a, b)
 
 
 def _closed_loop(body: RigidBody, feedback, Omega, a, b):
@@ -124,13 +133,7 @@ def _closed_loop(body: RigidBody, feedback, Omega, a, b):
     matrix with a vector and 2 fewer cross products per evaluation, per run and per
     tangent column.
     """
-    return _mv(body.inertia_inv, feedback - _mv(body.inertia, _cross(Omega, a) - b))
-
-
-def _geometric_acceleration(gains, body, R, Omega, Rd, Omega_d, dOmega_d):
-    """``Omega'`` of a body under its own `_geometric_torque` (`_closed_loop`)."""
-    e_R, (a, b) = _errors_and_rates(R, Rd, (Omega_d, dOmega_d))
-    return _closed_loop(body, -gains.k_R * e_R - gains.k_Omega * (Omega - a), Omega, a, b)
+    return _mv(body.inertia_inv, feedback - _reference_term(body, Omega, a, b))
 
 
 def tracking_errors(R: Rot, Omega: Vec3, Rd: Rot, Omega_d: Vec3) -> tuple[Vec3, Vec3]:
@@ -279,7 +282,8 @@ class GeometricController(AbstractController):
     def angular_acceleration(self, t, body, R, Omega, Rd, Omega_d, dOmega_d, memory=None):
         if type(self).__call__ is not GeometricController.__call__:  # a subclass's torque
             return super().angular_acceleration(t, body, R, Omega, Rd, Omega_d, dOmega_d, memory)
-        return _geometric_acceleration(self.gains, body, R, Omega, Rd, Omega_d, dOmega_d)
+        feedback, a, b = _geometric_feedback(self.gains, R, Omega, Rd, Omega_d, dOmega_d)
+        return _closed_loop(body, feedback, Omega, a, b)
 
 
 def _align(q: Array, q_ref: Array) -> Array:
