@@ -9,6 +9,9 @@ engine (`so3jax._engine`):
 - reverse (default): with two gains, the engine's one-pass Jacobian (the primal once,
   the two unit tangents batched over it; scalarized for 32 runs or more), whose
   contraction with the input tangent JAX transposes;
+- reverse, nine-number attitude tangents: the default with the Jacobian program's
+  attitude tangents carried as nine numbers (``dR``), not three (``xi``, ``dR = R
+  hat(xi)``, `so3jax._frames`; the engine before S52);
 - reverse, checkpointed: JAX's transpose of the checkpointed array program
   (``program="autodiff"``, memory ~ sqrt(n); the default before S19);
 - reverse, discrete adjoint: the engine's own backward scan of ``jax.vjp`` of
@@ -51,6 +54,7 @@ import _common as C  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 
 import so3jax as so3  # noqa: E402
+from so3jax import _engine  # noqa: E402
 from so3jax._integrators import METHODS, method_by_name  # noqa: E402
 
 #: The variants, in the order they run (the first is the baseline of the ratios).
@@ -58,6 +62,7 @@ VARIANTS = [
     "forward pass",
     "forward pass, array program",
     "reverse (default)",
+    "reverse, nine-number attitude tangents",
     "reverse, checkpointed",
     "reverse, discrete adjoint",
     "reverse, no checkpoints",
@@ -66,6 +71,22 @@ VARIANTS = [
     "Hessian (default)",
     "Hessian, autodiff",
 ]
+
+
+class nine_numbers:
+    """``fn`` traced with the Jacobian programs' attitude tangents carried as nine numbers
+    (``_engine.FRAME_TANGENTS`` off: the engine before S52), for the side-by-side row."""
+
+    def __init__(self, fn):
+        self.fn = fn
+
+    def __call__(self, k):
+        old = _engine.FRAME_TANGENTS
+        _engine.FRAME_TANGENTS = False
+        try:
+            return self.fn(k)
+        finally:
+            _engine.FRAME_TANGENTS = old
 
 
 def measure(fn, arg, repeats):
@@ -173,6 +194,7 @@ def main(argv=None):
             "forward pass": lambda k: cost(k, None),
             "forward pass, array program": lambda k: cost(k, None, "array"),
             "reverse (default)": jax.grad(cost),
+            "reverse, nine-number attitude tangents": nine_numbers(jax.grad(cost)),
             "reverse, checkpointed": jax.grad(lambda k: cost(k, program="autodiff")),
             "reverse, discrete adjoint": jax.grad(lambda k: cost(k, program="adjoint")),
             "reverse, no checkpoints": jax.grad(lambda k: cost(k, None, "autodiff")),
@@ -187,13 +209,18 @@ def main(argv=None):
         elif args.quick:  # the smoke run compiles the fewest programs
             variants.pop("forward pass, array program")
             variants.pop("reverse, no checkpoints")
+            variants.pop("reverse, nine-number attitude tangents")
             variants.pop("reverse, checkpointed")
             variants.pop("forward mode, JAX's jvp")
             variants.pop("Hessian (default)")
             variants.pop("Hessian, autodiff")
         base = None
         for name, fn in variants.items():
+            if isinstance(fn, nine_numbers):  # JAX caches derivatives of jitted programs
+                jax.clear_caches()
             r = measure(fn, k, repeats)
+            if isinstance(fn, nine_numbers):
+                jax.clear_caches()
             base = base or r
             r.update(
                 variant=name,

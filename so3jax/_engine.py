@@ -112,6 +112,7 @@ from jax.custom_derivatives import SymbolicZero, linear_call
 from jax.extend import core as jex_core
 
 from . import _scalarize as sc
+from ._frames import Frame, FrameError, dense as frames_dense, frame_jvp
 
 try:  # frontend attributes on the ops traced inside (`_hoisted`)
     from jax.experimental.xla_metadata import set_xla_metadata
@@ -181,6 +182,128 @@ def _masked_tangents(nz, xs, mP, mc, pf, cf, lead=()) -> tuple[list, list]:
         for x, d in zip(_pick(mc, cf), _pick(mc, full[len(pf) :]), strict=True)
     ]
     return dP, dc
+
+
+# ---------------------------------------------------------------------------
+# Attitude tangents as three numbers (`so3jax._frames`)
+# ---------------------------------------------------------------------------
+
+#: A carry mask's flag for a leaf whose tangent the Jacobian programs carry as a
+#: `Frame`: ``xi`` of shape ``shape[:-2] + (3,)`` for ``dR = R hat(xi)``.
+FRAME = 2
+
+
+def _frame_flags(mc) -> list:
+    """Per masked carry leaf, whether its tangent is a `Frame`."""
+    return [m == FRAME for m in mc if m]
+
+
+def _dense_mask(mc) -> tuple:
+    """``mc`` with its `FRAME` flags read as plain ones (nine numbers per rotation)."""
+    return tuple(bool(m) for m in mc)
+
+
+def _to_frames(cm, dc, fr) -> list:
+    """Dense rotation tangents (``n`` columns in front) as `Frame` ``xi``: ``vee(R^T dR)``
+    (exact for the zero tangents the Jacobian programs start from)."""
+    out = []
+    for R, d, f in zip(cm, dc, fr, strict=True):
+        if f:
+            W = jnp.matmul(jnp.swapaxes(R, -1, -2), d)
+            d = 0.5 * jnp.stack(
+                [
+                    W[..., 2, 1] - W[..., 1, 2],
+                    W[..., 0, 2] - W[..., 2, 0],
+                    W[..., 1, 0] - W[..., 0, 1],
+                ],
+                axis=-1,
+            )
+        out.append(d)
+    return out
+
+
+def _from_frames(cm, dc, fr) -> list:
+    """`Frame` ``xi`` (``n`` columns in front) as dense tangents ``R hat(xi)``."""
+    return [frames_dense(R, Frame(d)) if f else d for R, d, f in zip(cm, dc, fr, strict=True)]
+
+
+def _frame_step(g, Pm, cm, dP, dc, fr):
+    """``(dc1, c1)``: `_Loop._tstep`'s ``jvp`` of ``g`` with `Frame` carry tangents.
+
+    Raises `FrameError` naming the leaves whose tangent came out dense."""
+    n = len(cm)
+    tree = []
+
+    def flat(*args):
+        out, c1 = g(list(args[: len(Pm)]), list(args[len(Pm) :]))
+        leaves, treedef = jax.tree.flatten(c1)
+        tree.append(treedef)
+        return list(out) + leaves
+
+    tin = list(dP) + [Frame(d) if f else d for d, f in zip(dc, fr, strict=True)]
+    outs, touts = frame_jvp(flat, list(Pm) + list(cm), tin)
+    dc1, bad = [], []
+    for i, (f, o, t) in enumerate(zip(fr, outs[:n], touts[:n], strict=True)):
+        if f and isinstance(t, Frame) and not t.left:
+            dc1.append(t.xi.astype(jnp.result_type(o)))
+        elif f and t is None:
+            dc1.append(jnp.zeros(jnp.shape(o)[:-2] + (3,), jnp.result_type(o)))
+        elif f:
+            bad.append(i)
+        else:
+            dc1.append(jnp.zeros_like(o) if t is None else frames_dense(o, t))
+    if bad:
+        raise FrameError(bad)
+    return dc1, jax.tree.unflatten(tree[-1], outs[n:])
+
+
+def _frame_observe(o, Pm, cm, dP, dc, fr):
+    """`_Loop._tobs`'s tangent of ``o`` with `Frame` carry tangents (dense outputs)."""
+    tree = []
+
+    def flat(*args):
+        leaves, treedef = jax.tree.flatten(o(list(args[: len(Pm)]), list(args[len(Pm) :])))
+        tree.append(treedef)
+        return leaves
+
+    tin = list(dP) + [Frame(d) if f else d for d, f in zip(dc, fr, strict=True)]
+    outs, touts = frame_jvp(flat, list(Pm) + list(cm), tin)
+    tan = [
+        jnp.zeros_like(x) if t is None else frames_dense(x, t)
+        for x, t in zip(outs, touts, strict=True)
+    ]
+    return jax.tree.unflatten(tree[-1], tan)
+
+
+def _with_frames(loop, mP, mc, P, c0, nz_c) -> tuple:
+    """``mc`` with `FRAME` for each masked carry leaf whose tangent a step keeps a `Frame`.
+
+    Candidates are rotation-shaped leaves without an input tangent (their tangents start
+    at zero, which is ``R hat(0)`` for any ``R``). One step is traced abstractly with them
+    as frames; a leaf whose tangent comes out dense (an update without a `Frame` rule,
+    such as LGVI's) is dropped and the step traced again. The programs are built after:
+    the scalarized one may be traced only later, when JAX batches the call.
+    """
+    cf = _floats(c0)
+    cand = [
+        FRAME_TANGENTS and bool(m) and not z and tuple(jnp.shape(x)[-2:]) == (3, 3)
+        for m, x, z in zip(mc, cf, nz_c, strict=True)
+    ]
+    at = [i for i, m in enumerate(mc) if m]
+    dP = [jnp.zeros_like(x) for x in _pick(mP, _floats(P))]
+    while any(cand):
+        mcf = tuple(FRAME if c else m for c, m in zip(cand, mc, strict=True))
+        dc = [
+            jnp.zeros(jnp.shape(x)[:-2] + (3,) if c else jnp.shape(x), jnp.result_type(x))
+            for x, c in zip(_pick(mc, cf), _pick(mc, cand), strict=True)
+        ]
+        try:
+            jax.eval_shape(lambda mcf=mcf, dc=dc: loop._tstep(mP, mcf, (P, c0, dP, dc)))
+            return mcf
+        except FrameError as e:
+            for i in e.indices:
+                cand[at[i]] = False
+    return tuple(mc)
 
 
 def _depends(fn, args: list, dep: list) -> list:
@@ -1533,6 +1656,10 @@ class _Loop:
             c1 = self.step(Pp, _with_floats(c, _fill(mc, cm, cf)))
             return _pick(mc, _floats(c1)), c1
 
+        fr = _frame_flags(mc)
+        if any(fr):
+            dc1, c1 = _frame_step(g, _pick(mP, pf), _pick(mc, cf), dP, dc, fr)
+            return P, c1, dP, dc1
         _, dc1, c1 = jax.jvp(g, (_pick(mP, pf), _pick(mc, cf)), (list(dP), list(dc)), has_aux=True)
         return P, c1, dP, dc1
 
@@ -1544,6 +1671,9 @@ class _Loop:
             Pp = _with_floats(P, _fill(mP, Pm, pf))
             return self.observe(Pp, _with_floats(c, _fill(mc, cm, cf)))
 
+        fr = _frame_flags(mc)
+        if any(fr):
+            return _frame_observe(o, _pick(mP, pf), _pick(mc, cf), dP, dc, fr)
         return jax.jvp(o, (_pick(mP, pf), _pick(mc, cf)), (list(dP), list(dc)))[1]
 
     def tan_array(self, mP, mc, P, c0, dP, dc0):
@@ -1570,8 +1700,11 @@ class _Loop:
         ``dP``, ``dc0`` are the masked tangents with a leading axis of ``n``
         columns; the primal is computed once and the ``n`` tangents are batched
         over it. Returns ``(ys, cN, dys, dcN)`` with a column axis after the
-        saved-point axis of ``dys`` and in front of ``dcN``.
+        saved-point axis of ``dys`` and in front of ``dcN``. Rotations' tangents are
+        nine numbers here whatever ``mc`` says (`FRAME`): three numbers as small arrays
+        of their own made the program about 1.8x slower on a CPU (more kernels).
         """
+        mc = _dense_mask(mc)
         tobs = functools.partial(self._tobs, mP, mc)
 
         def observe(x):
@@ -1594,11 +1727,19 @@ class _Loop:
         """`_jac_body` as a step of a loop with parameters ``(P, dP)`` and carry
         ``(c, dc)`` (`_settle_jacobian_tangents`)."""
         (P, dP), (c, dc) = Pj, cj
-        _, c1, _, dc1 = self._jac_body(mP, mc, (P, c, dP, dc))
+        _, c1, _, dc1 = self._jac_body(mP, _dense_mask(mc), (P, c, dP, dc))
         return c1, dc1
 
     def jac_scalar(self, mP, mc, P, c0, dP, dc0, cut=None, batched=None, one=None):
-        """`jac_array` as a scalarized program: tangent components are ``(n,)`` arrays."""
+        """`jac_array` as a scalarized program: tangent components are ``(n,)`` arrays.
+
+        The carry leaves flagged `FRAME` in ``mc`` carry their tangents as `Frame`
+        ``xi`` (three numbers a rotation, `so3jax._frames`) inside; in and out they are
+        dense, as `jac_array`'s.
+        """
+        fr = _frame_flags(mc)
+        if any(fr):
+            dc0 = _to_frames(_pick(mc, _floats(c0)), list(dc0), fr)
         col = jax.tree.map(lambda a: a[0], (dP, dc0))  # one column: the example
         ex = (P, c0) + col
         body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut)
@@ -1631,6 +1772,8 @@ class _Loop:
         if n == 1:
             flat = flat[:n_primal] + [x[None] for x in flat[n_primal:]]
         _, dcN = sc.join(flat[n_primal:], jax.eval_shape(lambda: col), (n,))
+        if any(fr):
+            dcN = _from_frames(_pick(mc, _floats(cN)), list(dcN), fr)
         ys = sc.join(ys, obs_struct, (self.n_save,))
         return ys, cN, sc.join(dys, tobs_struct, (self.n_save, n)), dcN
 
@@ -2037,6 +2180,10 @@ _ADJOINT_FIRST_ORDER = (
 #: with its value, in one pass (`_jacobian_jvp`), for forward and reverse mode alike.
 FORWARD_JACOBIAN_MAX = 8
 
+#: Whether the Jacobian programs carry attitude tangents as three numbers
+#: (`so3jax._frames`); off: nine, from JAX's ``jvp`` (for benchmarks and tests).
+FRAME_TANGENTS = os.environ.get("SO3JAX_FRAME_TANGENTS", "1") != "0"
+
 
 def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
     """The run with the engine's own tangent program and a custom reverse mode.
@@ -2129,6 +2276,7 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple)
     pf, cf = _floats(P), _floats(c0)
     cols = _unit_columns(lin)
     n = len(cols[0])
+    mc = _with_frames(loop, mP, mc, P, c0, nz[len(pf) :])
     dP, dc = _masked_tangents(nz, cols, mP, mc, pf, cf, (n,))
     jac = _dual(
         functools.partial(loop.jac_array, mP, mc),

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
+from ._frames import Frame, frame_rule
 from ._scalarize import array_cut as _array_cut, array_cut_index as _array_cut_index
 from ._types import Array, ArrayLike, Mat3, Quat, Rot, Scalar, Vec3
 
@@ -560,6 +561,63 @@ def _exp_update_jvp(primals, tangents):
     if d is None:  # pragma: no cover (the rule runs only with a nonzero tangent)
         d = jnp.zeros_like(out)
     return out, jnp.broadcast_to(d, out.shape).astype(out.dtype)
+
+
+def _frame_update(tR, tw, rotate, jacobian):
+    """``xi'`` of an update ``R g(w)`` (``g`` orthogonal) from ``dR = R hat(xi)`` (``tR``, a
+    right `Frame` or ``None``) and ``dw`` (``tw``): ``g^T xi + v``, ``R g hat(v)`` the
+    update's tangent through ``w`` (``rotate(xi) = g^T xi``, ``jacobian(dw) = v``)."""
+    if tR is None:
+        return jacobian(tw)
+    return rotate(tR.xi) if tw is None else rotate(tR.xi) + jacobian(tw)
+
+
+@frame_rule("_exp_update")
+def _exp_update_frame(xs, ts):
+    """`_exp_update` with ``dR = R hat(xi)`` (`so3jax._frames`): ``R' = R exp(w)`` and
+    ``xi' = exp(w)^T xi + J_r(w) dw = xi - A w x xi + B w x (w x xi) + J_r(w) dw``: about
+    40 operations a column where ``dR exp(w) + R' hat(J_r(w) dw)`` takes 110."""
+    (R, w), (tR, tw) = xs, ts
+    return _exp_frame(R, w, tR, tw)
+
+
+def _exp_frame(R, w, tR, tw):
+    if tR is not None and (not isinstance(tR, Frame) or tR.left):
+        return None
+    t = _dot(w, w)
+    A, B, C = _abc_coeffs(t)
+    cut = _array_cut_index(w)
+    A, B, C, out = _array_cut(cut, A, B, C, R + _mm(R, _expm1_from(w, t, A, B)))
+
+    def rotate(xi):  # exp(-w) xi
+        wx = _cross(w, xi)
+        return xi - A[..., None] * wx + B[..., None] * _cross(w, wx)
+
+    xi = _frame_update(tR, tw, rotate, lambda v: _right_jacobian_times(w, v, B, C))
+    return [out], [Frame(xi.astype(out.dtype))]
+
+
+@frame_rule("_cay_update")
+def _cay_update_frame(xs, ts):
+    """`_cay_update` with ``dR = R hat(xi)``: ``xi' = cay(u)^T xi + c (du - u x du / 2)``,
+    ``cay(u)^T xi = xi + c (u x (u x xi) / 2 - u x xi)``, ``c = 4 / (4 + |u|^2)``."""
+    (R, u), (tR, tu) = xs, ts
+    return _cay_frame(R, u, tR, tu)
+
+
+def _cay_frame(R, u, tR, tu):
+    if tR is not None and (not isinstance(tR, Frame) or tR.left):
+        return None
+    cut = _array_cut_index(u)
+    c = (4.0 / (4.0 + _dot(u, u)))[..., None]
+    c, out = _array_cut(cut, c, R + _cay_increment_raw(R, u))
+
+    def rotate(xi):
+        ux = _cross(u, xi)
+        return xi + c * (0.5 * _cross(u, ux) - ux)
+
+    xi = _frame_update(tR, tu, rotate, lambda v: c * (v - 0.5 * _cross(u, v)))
+    return [out], [Frame(xi.astype(out.dtype))]
 
 
 @jax.custom_jvp

@@ -9,11 +9,14 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
+from ._frames import Frame, frame_rule
 from ._so3 import (
+    _cay_frame,
     _cay_increment,
     _cay_increment_raw,
     _cay_update,
     _cay_update_jvp,
+    _exp_frame,
     _exp_increment,
     _exp_increment_raw,
     _exp_update,
@@ -82,14 +85,16 @@ def advance(y: LieState, u: Array, dx: Array, coords: str = "exp") -> LieState:
     return LieState(R1, x1)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
 def _advance(R, u, x, dx, coords):
+    return (_advance_cay if coords == "cayley" else _advance_exp)(R, u, x, dx)
+
+
+def _advance_value(R, u, x, dx, coords):
     D = (_cay_increment_raw if coords == "cayley" else _exp_increment_raw)(R, u)
     x1 = x + dx
     return R + D, x1
 
 
-@functools.partial(_advance.defjvp, symbolic_zeros=True)
 def _advance_jvp(coords, primals, tangents):
     R, u, x, dx = primals
     dR, du, dxx, ddx = tangents
@@ -98,10 +103,45 @@ def _advance_jvp(coords, primals, tangents):
         R1, dR1 = move(R, u, coords), jnp.zeros_like(R)
     else:
         R1, dR1 = rule((R, u), (dR, du))
-    parts = [t for t in (dxx, ddx) if not isinstance(t, SymbolicZero)]
+    x1, dx1 = _sum_tangent(x, dx, [t for t in (dxx, ddx) if not isinstance(t, SymbolicZero)])
+    return (R1, x1), (dR1, jnp.zeros_like(x1) if dx1 is None else dx1)
+
+
+def _sum_tangent(x, dx, parts):
     x1 = x + dx
-    dx1 = functools.reduce(jnp.add, parts) if parts else jnp.zeros_like(x1)
-    return (R1, x1), (dR1, jnp.broadcast_to(dx1, x1.shape).astype(x1.dtype))
+    if not parts:
+        return x1, None
+    return x1, jnp.broadcast_to(functools.reduce(jnp.add, parts), x1.shape).astype(x1.dtype)
+
+
+def _advance_frame(coords, xs, ts):
+    """`_advance` with ``dR = R hat(xi)`` (`so3jax._frames`): the update's `Frame` rule."""
+    (R, u, x, dx), (tR, tu, tx, tdx) = xs, ts
+    if any(isinstance(t, Frame) for t in (tu, tx, tdx)):
+        return None
+    res = (_cay_frame if coords == "cayley" else _exp_frame)(R, u, tR, tu)
+    if res is None:
+        return None
+    (R1,), (fR,) = res
+    x1, dx1 = _sum_tangent(x, dx, [t for t in (tx, tdx) if t is not None])
+    return [R1, x1], [fR, dx1]
+
+
+# One function per coordinates (a `Frame` rule finds them by name).
+@jax.custom_jvp
+def _advance_exp(R, u, x, dx):
+    return _advance_value(R, u, x, dx, "exp")
+
+
+@jax.custom_jvp
+def _advance_cay(R, u, x, dx):
+    return _advance_value(R, u, x, dx, "cayley")
+
+
+_advance_exp.defjvp(functools.partial(_advance_jvp, "exp"), symbolic_zeros=True)
+_advance_cay.defjvp(functools.partial(_advance_jvp, "cayley"), symbolic_zeros=True)
+frame_rule("_advance_exp")(functools.partial(_advance_frame, "exp"))
+frame_rule("_advance_cay")(functools.partial(_advance_frame, "cayley"))
 
 
 def increment(R: Array, u: Array, coords: str = "exp") -> Array:

@@ -1,0 +1,316 @@
+"""Attitude tangents as three numbers: a forward-mode interpreter for the engine.
+
+The engine's Jacobian programs (`so3jax._engine._Loop.jac_array` / ``jac_scalar``) carry,
+for every differentiated input, the tangent of each carry leaf. JAX's ``jvp`` gives a
+rotation ``R`` a tangent of the same shape, nine numbers, although every tangent the
+group updates produce has the form ``dR = R hat(xi)``: three numbers in the body frame.
+Carried as nine, each update pays for a product of ``dR`` with a 3x3 matrix (45
+operations a column) where ``exp(w)^T xi`` costs about 15, and the controller forms
+``dR^T Rd`` in full.
+
+`frame_jvp` is ``jax.jvp`` with such tangents allowed: an input tangent may be a
+`Frame`, ``xi`` with the primal's shape less its last axis, meaning ``R hat(xi)``
+(``left=True``: ``hat(xi) R``). It walks the function's jaxpr. Where an equation has
+no `Frame` input it is differentiated by JAX as one equation. Shape operations that
+leave the last two axes alone (slices, stacks, broadcasts, selects by a flag that is
+the same for the whole matrix) move a `Frame` as they move its matrix; a transpose of
+the last two axes turns a right `Frame` into a left one; custom-JVP functions with a
+registered rule (`frame_rule`: the group updates of `so3jax._so3`, the end of a step in
+`so3jax._state`, the tracking errors in `so3jax._control`) take and give `Frame`
+tangents directly. Anything else gets the dense tangent (``R hat(xi)``, 18 products,
+once per value) and JAX's own rule, so the result is always the ``jvp``; only where the
+rules reach is it cheaper. The rules are exact identities (``exp(w)`` is orthogonal),
+so the tangents equal JAX's to round-off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.extend import core as jex_core
+
+from . import _scalarize as sc
+
+__all__ = ["Frame", "FrameError", "frame_jvp", "frame_rule", "dense"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    """The tangent ``P hat(xi)`` (``left``: ``hat(xi) P``) of a primal ``P`` of shape
+    ``(..., 3, 3)``; ``xi`` has shape ``(..., 3)``."""
+
+    xi: jax.Array
+    left: bool = False
+
+
+class FrameError(ValueError):
+    """An output asked for as a `Frame` came out dense; ``indices`` says which."""
+
+    def __init__(self, indices):
+        super().__init__(f"outputs {indices} have dense tangents")
+        self.indices = tuple(indices)
+
+
+#: custom-JVP function name -> rule ``(xs, ts) -> (outs, touts)`` or ``None`` (no rule
+#: for these tangents: the caller densifies). ``ts`` entries: ``None`` (zero), an array,
+#: or a `Frame`.
+_RULES: dict[str, Callable] = {}
+_DEBUG: list | None = None  # equations that densified a `Frame` (a test hook)
+
+
+def frame_rule(name: str):
+    """Register the `Frame` rule of the custom-JVP function called ``name`` in so3jax."""
+
+    def register(rule):
+        _RULES[name] = rule
+        return rule
+
+    return register
+
+
+def _cross(a, b):
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def dense(P, t):
+    """The tangent ``t`` of ``P`` as an array (``None`` stays ``None``)."""
+    if not isinstance(t, Frame):
+        return t
+    xi = t.xi.astype(jnp.result_type(P))
+    if t.left:  # columns of hat(xi) P are xi x p_j
+        return jnp.swapaxes(_cross(xi[..., None, :], jnp.swapaxes(P, -1, -2)), -1, -2)
+    return _cross(P, xi[..., None, :])  # rows of P hat(xi) are p_i x xi
+
+
+def _custom_name(eqn) -> str | None:
+    """The name of the so3jax function behind a ``custom_jvp_call`` equation."""
+    info = getattr(eqn.params.get("call_jaxpr"), "jaxpr", None)
+    info = getattr(info, "debug_info", None)
+    src = getattr(info, "func_src_info", None) or ""
+    if "so3jax" not in src:
+        return None
+    return src.split(" ")[0]
+
+
+def _is_float(aval) -> bool:
+    return jnp.issubdtype(aval.dtype, jnp.inexact)
+
+
+# ---------------------------------------------------------------------------
+# Shape operations on the leading axes
+# ---------------------------------------------------------------------------
+
+
+def _keeps_matrix(in_shape, out_shape) -> bool:
+    return tuple(in_shape[-2:]) == (3, 3) and tuple(out_shape[-2:]) == (3, 3)
+
+
+def _moved(eqn, xs, ts, uniform):
+    """A `Frame` through a shape operation on the leading axes, or ``None``."""
+    name, p = eqn.primitive.name, eqn.params
+    out_aval = eqn.outvars[0].aval
+    frames = [t for t in ts if isinstance(t, Frame)]
+    left = frames[0].left
+    if any(t.left != left for t in frames):
+        return None
+    if any(t is not None and not isinstance(t, Frame) for t in ts):
+        return None  # a dense tangent beside a frame
+    x0 = xs[[i for i, t in enumerate(ts) if isinstance(t, Frame)][0]]
+    in_shape = jnp.shape(x0)
+    if not _keeps_matrix(in_shape, out_aval.shape):
+        return None
+    r = len(out_aval.shape)
+
+    def xi_of(x, t):
+        if t is None:
+            return np.zeros(jnp.shape(x)[:-1], jnp.result_type(x))
+        return t.xi
+
+    if name in ("copy", "copy_p", "neg"):
+        return Frame(ts[0].xi, left)
+    if name == "convert_element_type":
+        return Frame(ts[0].xi.astype(out_aval.dtype), left)
+    # Below, a matrix's shape (..., 3, 3) maps to its frame's (..., 3): the leading axes
+    # keep their numbers and the last axis of the frame stands for the matrix's two.
+    if name == "slice":
+        start, limit, strides = p["start_indices"], p["limit_indices"], p["strides"]
+        if tuple(start[-2:]) != (0, 0) or tuple(limit[-2:]) != (3, 3):
+            return None
+        if strides is not None and tuple(strides[-2:]) != (1, 1):
+            return None
+        strides = None if strides is None else tuple(strides[:-2]) + (1,)
+        xi = jax.lax.slice(ts[0].xi, tuple(start[:-2]) + (0,), tuple(limit[:-2]) + (3,), strides)
+        return Frame(xi, left)
+    if name == "squeeze":
+        dims = tuple(d % len(in_shape) for d in p["dimensions"])
+        if any(d >= len(in_shape) - 2 for d in dims):
+            return None
+        return Frame(jax.lax.squeeze(ts[0].xi, dims), left)
+    if name == "reshape":
+        if p.get("dimensions") is not None:
+            return None
+        return Frame(jnp.reshape(ts[0].xi, tuple(p["new_sizes"][:-2]) + (3,)), left)
+    if name == "broadcast_in_dim":
+        bd = tuple(p["broadcast_dimensions"])
+        if bd[-2:] != (r - 2, r - 1):
+            return None
+        shape = tuple(out_aval.shape[:-2]) + (3,)
+        xi = jax.lax.broadcast_in_dim(ts[0].xi, shape, bd[:-2] + (r - 2,))
+        return Frame(xi, left)
+    if name == "concatenate":
+        if p["dimension"] >= r - 2:
+            return None
+        xis = [xi_of(x, t) for x, t in zip(xs, ts, strict=True)]
+        return Frame(jax.lax.concatenate(xis, p["dimension"]), left)
+    if name == "stack":
+        if p["axis"] % r >= r - 2:
+            return None
+        xis = [xi_of(x, t) for x, t in zip(xs, ts, strict=True)]
+        return Frame(jnp.stack(xis, p["axis"] % r), left)
+    if name == "select_n":
+        pred = xs[0]
+        if eqn.invars[0] in uniform:
+            pred = pred[..., 0, :]
+        elif jnp.ndim(pred) != 0:
+            return None
+        xis = [xi_of(x, t) for x, t in zip(xs[1:], ts[1:], strict=True)]
+        return Frame(jax.lax.select_n(pred, *xis), left)
+    if name == "transpose":
+        perm = tuple(p["permutation"])
+        if perm[-2:] != (r - 1, r - 2) or perm[:-2] != tuple(range(r - 2)):
+            return None
+        return Frame(-ts[0].xi, not left)
+    return None
+
+
+_MOVES = frozenset(
+    "copy copy_p neg convert_element_type slice squeeze reshape broadcast_in_dim concatenate "
+    "select_n stack transpose".split()
+)
+
+
+# ---------------------------------------------------------------------------
+# The interpreter
+# ---------------------------------------------------------------------------
+
+
+def _jvp_eqn(eqn, xs, ts):
+    """JAX's ``jvp`` of one equation through the inputs with a (dense) tangent."""
+    idx = [i for i, t in enumerate(ts) if t is not None]
+
+    def f(*nz):
+        args = list(xs)
+        for i, a in zip(idx, nz, strict=True):
+            args[i] = a
+        return sc._bind(eqn, args)
+
+    outs, touts = jax.jvp(f, [xs[i] for i in idx], [ts[i] for i in idx])
+    touts = [t if _is_float(v.aval) else None for t, v in zip(touts, eqn.outvars, strict=True)]
+    return list(outs), touts
+
+
+def _eval(jaxpr, consts, primals, tangents):
+    env: dict = dict(zip(jaxpr.constvars, consts, strict=True))
+    tan: dict = {}
+    env.update(zip(jaxpr.invars, primals, strict=True))
+    tan.update(zip(jaxpr.invars, tangents, strict=True))
+    uniform: set = set()  # boolean values the same across a matrix's last two axes
+    dense_of: dict = {}  # a Frame's dense tangent, formed once per value
+
+    def read(v):
+        if isinstance(v, jex_core.Literal):
+            return v.val, None
+        return env[v], tan.get(v)
+
+    def densified(v, x, t):
+        if not isinstance(t, Frame):
+            return t
+        if isinstance(v, jex_core.Literal) or v not in dense_of:
+            d = dense(x, t)
+            if not isinstance(v, jex_core.Literal):
+                dense_of[v] = d
+            return d
+        return dense_of[v]
+
+    for eqn in jaxpr.eqns:
+        pairs = [read(v) for v in eqn.invars]
+        xs, ts = [x for x, _ in pairs], [t for _, t in pairs]
+        name = eqn.primitive.name
+        floats_out = [_is_float(v.aval) for v in eqn.outvars]
+        with eqn.ctx.manager:
+            if all(t is None for t in ts) or not any(floats_out):
+                outs, touts = sc._bind(eqn, xs), [None] * len(eqn.outvars)
+                if name == "broadcast_in_dim" and _uniform_broadcast(eqn):
+                    uniform.add(eqn.outvars[0])
+            else:
+                outs = touts = None
+                if any(isinstance(t, Frame) for t in ts):
+                    outs, touts = _frame_eqn(eqn, xs, ts, uniform)
+                if outs is None:
+                    if _DEBUG is not None and any(isinstance(t, Frame) for t in ts):
+                        _DEBUG.append(eqn)
+                    ts = [densified(v, x, t) for v, x, t in zip(eqn.invars, xs, ts, strict=True)]
+                    outs, touts = _jvp_eqn(eqn, xs, ts)
+        for v, o, t in zip(eqn.outvars, outs, touts, strict=True):
+            if not isinstance(v, jex_core.DropVar):
+                env[v], tan[v] = o, t
+    return [read(v) for v in jaxpr.outvars]
+
+
+def _uniform_broadcast(eqn) -> bool:
+    """A boolean broadcast whose value does not vary along the last two axes."""
+    r = len(eqn.outvars[0].aval.shape)
+    if r < 2 or eqn.outvars[0].aval.dtype != jnp.bool_:
+        return False
+    bd = eqn.params["broadcast_dimensions"]
+    return r - 2 not in bd and r - 1 not in bd
+
+
+def _frame_eqn(eqn, xs, ts, uniform):
+    """``(outs, touts)`` for an equation with a `Frame` input, or ``(None, None)``."""
+    name = eqn.primitive.name
+    if name in _MOVES:
+        t = _moved(eqn, xs, ts, uniform)
+        if t is None:
+            return None, None
+        return sc._bind(eqn, xs), [t]
+    if name in ("pjit", "jit", "closed_call", "core_call"):
+        inner = eqn.params.get("jaxpr") or eqn.params.get("call_jaxpr")
+        if isinstance(inner, jex_core.ClosedJaxpr):
+            res = _eval(inner.jaxpr, inner.consts, xs, ts)
+            return [o for o, _ in res], [t for _, t in res]
+        return None, None
+    if name == "custom_jvp_call":
+        rule = _RULES.get(_custom_name(eqn))
+        k = eqn.params["num_consts"]
+        if rule is None or any(t is not None for t in ts[:k]):
+            return None, None
+        res = rule(xs[k:], ts[k:])
+        if res is None:
+            return None, None
+        return list(res[0]), list(res[1])
+    if name == "cond" and sc._is_cut(eqn.params["branches"]):
+        # A fusion cut (`so3jax._scalarize.fusion_cut`) of values with `Frame` tangents and
+        # none dense: the values through it, the frames beside it (the operands after the
+        # index are its outputs, one to one).
+        if any(t is not None and not isinstance(t, Frame) for t in ts):
+            return None, None
+        return sc._bind(eqn, xs), list(ts[1:])
+    return None, None
+
+
+def frame_jvp(fn: Callable, primals: list, tangents: list) -> tuple[list, list]:
+    """``jax.jvp`` of ``fn`` (flat: a list of arrays in, a list out) with `Frame`
+    tangents allowed in ``tangents`` (``None``: zero).
+
+    Returns the outputs and their tangents: ``None`` (zero), an array, or a `Frame`.
+    """
+    closed = jax.make_jaxpr(fn)(*primals)
+    res = _eval(closed.jaxpr, closed.consts, list(primals), list(tangents))
+    return [o for o, _ in res], [t for _, t in res]
