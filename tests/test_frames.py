@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import so3jax as s
-from so3jax import _control, _engine, _frames as F, _so3, _state
+from so3jax import _control, _engine, _frames as F, _so3, _state, _tune
 from so3jax._simulate import _simulate, engine_step, guarded_step, split_groups
 from so3jax._tune import with_gains, with_start
 
@@ -212,3 +212,39 @@ def test_scalarized_jacobian_with_three_number_tangents(method, monkeypatch):
     n_steps = len(steps)
     assert _rel(got, jax.jit(jax.jacfwd(cost("auto")))(k)) < 1e-12
     assert len(steps) == n_steps  # nine numbers this time
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_tracking_cost_integrand_rule_equals_jvp(dtype):
+    """The cost's integrand (`so3jax._tune`) at one point and at many, with the attitude's
+    tangent a frame, the weights', rate's and torque's dense or zero, the reference's a
+    frame, dense or zero; a left frame takes JAX's rule (dense)."""
+    tol = 1e-13 if dtype == jnp.float64 else 2e-5
+    for lead in ((), (4,)):
+        R, Rd = _rot(20, lead).astype(dtype), _rot(21, lead).astype(dtype)
+        W, M, Od = (_vec(22 + i, lead + (3,), dtype) for i in range(3))
+        w = [jnp.asarray(v, dtype) for v in (1.0, 0.1, 0.01)]
+        xi = _vec(25, lead + (3,), dtype)
+        xs = [*w, R, W, Rd, M, Od]
+        for tw, tW, tM in (
+            (None, None, None),
+            (jnp.asarray(0.5, dtype), _vec(26, lead + (3,), dtype), _vec(27, lead + (3,), dtype)),
+        ):
+            ts = [tw, None, tw, F.Frame(xi), tW, None, tM, None]
+            assert not _densified(lambda *a: [_tune._integrand_of(*a)], xs, ts, tol)
+        zeta, dOd = _vec(28, lead + (3,), dtype), _vec(29, lead + (3,), dtype)
+        for tRd, tOd in ((F.Frame(zeta), None), (None, dOd), (F.Frame(zeta), dOd)):
+            ts = [None, None, None, F.Frame(xi), None, tRd, None, tOd]
+            assert not _densified(lambda *a: [_tune._integrand_of(*a)], xs, ts, tol)
+        ts = [None, None, None, F.Frame(xi), None, F.Frame(zeta, left=True), None, None]
+        assert _densified(lambda *a: [_tune._integrand_of(*a)], xs, ts, tol)
+
+
+def _densified(fn, xs, ts, tol) -> list:
+    """`_check`, and the equations that took a dense tangent for a frame."""
+    F._DEBUG = []
+    try:
+        _check(fn, xs, ts, tol)
+        return F._DEBUG
+    finally:
+        F._DEBUG = None
