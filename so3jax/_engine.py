@@ -279,35 +279,18 @@ def _frame_observe(o, Pm, cm, dP, dc, fr):
     return jax.tree.unflatten(tree[-1], tan)
 
 
-def _with_frames(loop, mP, mc, P, c0, nz_c) -> tuple:
-    """``mc`` with `FRAME` for each masked carry leaf whose tangent a step keeps a `Frame`.
+def _with_frames(mc, c0, nz_c) -> tuple:
+    """``mc`` with `FRAME` for each masked carry leaf that may carry a `Frame`: rotation-
+    shaped, without an input tangent (it starts at zero, ``R hat(0)`` for any ``R``).
 
-    Candidates are rotation-shaped leaves without an input tangent (their tangents start
-    at zero, which is ``R hat(0)`` for any ``R``). One step is traced abstractly with them
-    as frames; a leaf whose tangent comes out dense (an update without a `Frame` rule,
-    such as LGVI's) is dropped and the step traced again. The programs are built after:
-    the scalarized one may be traced only later, when JAX batches the call.
+    Whether a step keeps it a frame is found when the scalarized Jacobian program is
+    traced (`_Loop.jac_scalar`, which falls back to nine numbers for a leaf whose tangent
+    comes out dense, such as LGVI's); the array layout always carries nine.
     """
-    cf = _floats(c0)
-    cand = [
-        FRAME_TANGENTS and bool(m) and not z and tuple(jnp.shape(x)[-2:]) == (3, 3)
-        for m, x, z in zip(mc, cf, nz_c, strict=True)
-    ]
-    at = [i for i, m in enumerate(mc) if m]
-    dP = [jnp.zeros_like(x) for x in _pick(mP, _floats(P))]
-    while any(cand):
-        mcf = tuple(FRAME if c else m for c, m in zip(cand, mc, strict=True))
-        dc = [
-            jnp.zeros(jnp.shape(x)[:-2] + (3,) if c else jnp.shape(x), jnp.result_type(x))
-            for x, c in zip(_pick(mc, cf), _pick(mc, cand), strict=True)
-        ]
-        try:
-            jax.eval_shape(lambda mcf=mcf, dc=dc: loop._tstep(mP, mcf, (P, c0, dP, dc)))
-            return mcf
-        except FrameError as e:
-            for i in e.indices:
-                cand[at[i]] = False
-    return tuple(mc)
+    return tuple(
+        FRAME if FRAME_TANGENTS and m and not z and tuple(jnp.shape(x)[-2:]) == (3, 3) else m
+        for m, x, z in zip(mc, _floats(c0), nz_c, strict=True)
+    )
 
 
 def _depends(fn, args: list, dep: list) -> list:
@@ -1741,6 +1724,15 @@ class _Loop:
         ``xi`` (three numbers a rotation, `so3jax._frames`) inside; in and out they are
         dense, as `jac_array`'s.
         """
+        while any(_frame_flags(mc)):
+            try:
+                return self._jac_scalar(mP, mc, P, c0, dP, dc0, cut, batched, one)
+            except FrameError as e:  # those leaves' tangents come out dense: nine numbers
+                at = [i for i, m in enumerate(mc) if m]
+                mc = tuple(True if i in {at[j] for j in e.indices} else m for i, m in enumerate(mc))
+        return self._jac_scalar(mP, mc, P, c0, dP, dc0, cut, batched, one)
+
+    def _jac_scalar(self, mP, mc, P, c0, dP, dc0, cut, batched, one):
         fr = _frame_flags(mc)
         if any(fr):
             dc0 = _to_frames(_pick(mc, _floats(c0)), list(dc0), fr)
@@ -2280,7 +2272,7 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple)
     pf, cf = _floats(P), _floats(c0)
     cols = _unit_columns(lin)
     n = len(cols[0])
-    mc = _with_frames(loop, mP, mc, P, c0, nz[len(pf) :])
+    mc = _with_frames(mc, c0, nz[len(pf) :])
     dP, dc = _masked_tangents(nz, cols, mP, mc, pf, cf, (n,))
     jac = _dual(
         functools.partial(loop.jac_array, mP, mc),

@@ -175,7 +175,7 @@ def _moved(eqn, xs, ts, uniform):
         return Frame(jnp.stack(xis, p["axis"] % r), left)
     if name == "select_n":
         pred = xs[0]
-        if eqn.invars[0] in uniform:
+        if isinstance(eqn.invars[0], jex_core.Var) and eqn.invars[0] in uniform:
             pred = pred[..., 0, :]
         elif jnp.ndim(pred) != 0:
             return None
