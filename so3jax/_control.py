@@ -30,7 +30,7 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 from ._dynamics import RigidBody
-from ._frames import Frame, dense, frame_rule
+from ._frames import Frame, dense, frame_rule, right_or_zero
 from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _prep, _to_quat, _vee
 from ._types import Array, ArrayLike, Rot, Scalar, Vec3
 
@@ -145,11 +145,8 @@ def _errors_and_rates_frame(xs, ts):
     six entries of ``dE`` from the frames."""
     R, Rd, *vs = xs
     tR, tRd, *tvs = ts
-    if any(isinstance(t, Frame) for t in tvs):
+    if any(isinstance(t, Frame) for t in tvs) or not (right_or_zero(tR) and right_or_zero(tRd)):
         return None
-    for t in (tR, tRd):
-        if t is not None and (not isinstance(t, Frame) or t.left):
-            return None
     RtRd = _mm(_mT(R), Rd)
     a = [_mv(RtRd, v) for v in vs]
     dE, rotated = None, [None] * len(vs)

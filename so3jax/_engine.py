@@ -117,6 +117,7 @@ from jax.extend import core as jex_core
 
 from . import _scalarize as sc
 from ._frames import Frame, FrameError, dense as frames_dense, frame_jvp
+from ._so3 import _mT, _vee
 
 try:  # frontend attributes on the ops traced inside (`_hoisted`)
     from jax.experimental.xla_metadata import set_xla_metadata
@@ -210,20 +211,7 @@ def _dense_mask(mc) -> tuple:
 def _to_frames(cm, dc, fr) -> list:
     """Dense rotation tangents (``n`` columns in front) as `Frame` ``xi``: ``vee(R^T dR)``
     (exact for the zero tangents the Jacobian programs start from)."""
-    out = []
-    for R, d, f in zip(cm, dc, fr, strict=True):
-        if f:
-            W = jnp.matmul(jnp.swapaxes(R, -1, -2), d)
-            d = 0.5 * jnp.stack(
-                [
-                    W[..., 2, 1] - W[..., 1, 2],
-                    W[..., 0, 2] - W[..., 2, 0],
-                    W[..., 1, 0] - W[..., 0, 1],
-                ],
-                axis=-1,
-            )
-        out.append(d)
-    return out
+    return [_vee(jnp.matmul(_mT(R), d)) if f else d for R, d, f in zip(cm, dc, fr, strict=True)]
 
 
 def _from_frames(cm, dc, fr) -> list:
@@ -231,21 +219,28 @@ def _from_frames(cm, dc, fr) -> list:
     return [frames_dense(R, Frame(d)) if f else d for R, d, f in zip(cm, dc, fr, strict=True)]
 
 
-def _frame_step(g, Pm, cm, dP, dc, fr):
-    """``(dc1, c1)``: `_Loop._tstep`'s ``jvp`` of ``g`` with `Frame` carry tangents.
-
-    Raises `FrameError` naming the leaves whose tangent came out dense."""
-    n = len(cm)
+def _jvp_with_frames(fn, Pm, cm, dP, dc, fr):
+    """`frame_jvp` of ``fn(Pm, cm)`` (a pytree out) with the carry tangents flagged in
+    ``fr`` given as `Frame` ``xi``: ``(out leaves, their tangents, out treedef)``."""
     tree = []
 
     def flat(*args):
-        out, c1 = g(list(args[: len(Pm)]), list(args[len(Pm) :]))
-        leaves, treedef = jax.tree.flatten(c1)
+        leaves, treedef = jax.tree.flatten(fn(list(args[: len(Pm)]), list(args[len(Pm) :])))
         tree.append(treedef)
-        return list(out) + leaves
+        return leaves
 
     tin = list(dP) + [Frame(d) if f else d for d, f in zip(dc, fr, strict=True)]
     outs, touts = frame_jvp(flat, list(Pm) + list(cm), tin)
+    return outs, touts, tree[-1]
+
+
+def _frame_step(g, Pm, cm, dP, dc, fr):
+    """``(dc1, c1)``: `_Loop._tstep`'s ``jvp`` of ``g`` (``-> (masked carry floats, c1)``)
+    with `Frame` carry tangents.
+
+    Raises `FrameError` naming the leaves whose tangent came out dense."""
+    outs, touts, treedef = _jvp_with_frames(g, Pm, cm, dP, dc, fr)
+    n = len(fr)  # the masked carry floats come first
     dc1, bad = [], []
     for i, (f, o, t) in enumerate(zip(fr, outs[:n], touts[:n], strict=True)):
         if f and isinstance(t, Frame) and not t.left:
@@ -258,25 +253,17 @@ def _frame_step(g, Pm, cm, dP, dc, fr):
             dc1.append(jnp.zeros_like(o) if t is None else frames_dense(o, t))
     if bad:
         raise FrameError(bad)
-    return dc1, jax.tree.unflatten(tree[-1], outs[n:])
+    return dc1, jax.tree.unflatten(treedef, outs)[1]
 
 
 def _frame_observe(o, Pm, cm, dP, dc, fr):
     """`_Loop._tobs`'s tangent of ``o`` with `Frame` carry tangents (dense outputs)."""
-    tree = []
-
-    def flat(*args):
-        leaves, treedef = jax.tree.flatten(o(list(args[: len(Pm)]), list(args[len(Pm) :])))
-        tree.append(treedef)
-        return leaves
-
-    tin = list(dP) + [Frame(d) if f else d for d, f in zip(dc, fr, strict=True)]
-    outs, touts = frame_jvp(flat, list(Pm) + list(cm), tin)
+    outs, touts, treedef = _jvp_with_frames(o, Pm, cm, dP, dc, fr)
     tan = [
         jnp.zeros_like(x) if t is None else frames_dense(x, t)
         for x, t in zip(outs, touts, strict=True)
     ]
-    return jax.tree.unflatten(tree[-1], tan)
+    return jax.tree.unflatten(treedef, tan)
 
 
 def _with_frames(mc, c0, nz_c) -> tuple:
@@ -1729,7 +1716,8 @@ class _Loop:
                 return self._jac_scalar(mP, mc, P, c0, dP, dc0, cut, batched, one)
             except FrameError as e:  # those leaves' tangents come out dense: nine numbers
                 at = [i for i, m in enumerate(mc) if m]
-                mc = tuple(True if i in {at[j] for j in e.indices} else m for i, m in enumerate(mc))
+                dense = {at[j] for j in e.indices}
+                mc = tuple(True if i in dense else m for i, m in enumerate(mc))
         return self._jac_scalar(mP, mc, P, c0, dP, dc0, cut, batched, one)
 
     def _jac_scalar(self, mP, mc, P, c0, dP, dc0, cut, batched, one):

@@ -35,7 +35,7 @@ from jax.extend import core as jex_core
 
 from . import _scalarize as sc
 
-__all__ = ["Frame", "FrameError", "frame_jvp", "frame_rule", "dense"]
+__all__ = ["Frame", "FrameError", "frame_jvp", "frame_rule", "dense", "right_or_zero"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +45,12 @@ class Frame:
 
     xi: jax.Array
     left: bool = False
+
+
+def right_or_zero(t) -> bool:
+    """Whether a tangent is a right `Frame` (``R hat(xi)``) or zero (``None``): what the
+    rules of the group updates and errors take for a rotation."""
+    return t is None or (isinstance(t, Frame) and not t.left)
 
 
 class FrameError(ValueError):

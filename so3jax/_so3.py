@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
-from ._frames import Frame, frame_rule
+from ._frames import Frame, frame_rule, right_or_zero
 from ._scalarize import array_cut as _array_cut, array_cut_index as _array_cut_index
 from ._types import Array, ArrayLike, Mat3, Quat, Rot, Scalar, Vec3
 
@@ -582,7 +582,7 @@ def _exp_update_frame(xs, ts):
 
 
 def _exp_frame(R, w, tR, tw):
-    if tR is not None and (not isinstance(tR, Frame) or tR.left):
+    if not right_or_zero(tR):
         return None
     t = _dot(w, w)
     A, B, C = _abc_coeffs(t)
@@ -606,7 +606,7 @@ def _cay_update_frame(xs, ts):
 
 
 def _cay_frame(R, u, tR, tu):
-    if tR is not None and (not isinstance(tR, Frame) or tR.left):
+    if not right_or_zero(tR):
         return None
     cut = _array_cut_index(u)
     c = (4.0 / (4.0 + _dot(u, u)))[..., None]

@@ -27,12 +27,12 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 from ._control import GeometricController, GeometricGains
-from ._engine import jit_own, run
-from ._frames import Frame, frame_rule
+from ._engine import _jvp_through, jit_own, run
+from ._frames import Frame, frame_rule, right_or_zero
 from ._integrators import RKMK4, AbstractLieSolver
 from ._scene import Scene
 from ._simulate import engine_step, guarded_step, join_groups, split_groups, split_scene
-from ._so3 import _as_float, _cross, _is_concrete, _mm, _mT, _mtv, _mv
+from ._so3 import _as_float, _cross, _is_concrete, _mm, _mT, _mtv, _mv, _vee
 from ._trajectory import OK, Trajectory, _check_dt, _check_int
 from ._types import Array, ArrayLike
 
@@ -130,9 +130,19 @@ def _integrand(weights: CostWeights, R, Omega, Rd, M, Omega_d) -> Array:
 
 
 def _integrand_raw(w_psi, w_omega, w_effort, R, Omega, Rd, M, Omega_d):
+    psi, _, e_Omega = _integrand_errors(R, Omega, Rd, Omega_d)
+    return _weighted(w_psi, w_omega, w_effort, psi, e_Omega, M)
+
+
+def _integrand_errors(R, Omega, Rd, Omega_d):
+    """``(Psi, a, e_Omega)`` with ``a = R^T Rd Omega_d``."""
     psi = 0.5 * (3.0 - jnp.sum(Rd * R, axis=(-1, -2)))
     # e_Omega = Omega - R^T Rd Omega_d (Lee, Leok & McClamroch 2010, eq. (11)).
-    e_Omega = Omega - _mtv(R, _mv(Rd, Omega_d))
+    a = _mtv(R, _mv(Rd, Omega_d))
+    return psi, a, Omega - a
+
+
+def _weighted(w_psi, w_omega, w_effort, psi, e_Omega, M):
     return w_psi * psi + w_omega * jnp.sum(e_Omega**2, -1) + w_effort * jnp.sum(M**2, -1)
 
 
@@ -144,15 +154,9 @@ def _integrand_of(*args):
 
 @functools.partial(_integrand_of.defjvp, symbolic_zeros=True)
 def _integrand_of_jvp(primals, tangents):
-    nz = [i for i, t in enumerate(tangents) if not isinstance(t, SymbolicZero)]
-
-    def f(*xs):
-        args = list(primals)
-        for i, x in zip(nz, xs, strict=True):
-            args[i] = x
-        return _integrand_raw(*args)
-
-    return jax.jvp(f, [primals[i] for i in nz], [tangents[i] for i in nz])
+    nz = [not isinstance(t, SymbolicZero) for t in tangents]
+    treedef = jax.tree.structure(tuple(primals))
+    return _jvp_through(_integrand_raw, treedef, list(primals), list(tangents), nz)
 
 
 @frame_rule("_integrand_of")
@@ -164,19 +168,13 @@ def _integrand_frame(xs, ts):
     products)."""
     w_psi, w_omega, w_effort, R, Omega, Rd, M, Omega_d = xs
     tR, tRd = ts[3], ts[5]
-    if not isinstance(tR, Frame) or tR.left:
+    if tR is None or not (right_or_zero(tR) and right_or_zero(tRd)):
         return None
     if any(isinstance(t, Frame) for i, t in enumerate(ts) if i not in (3, 5)):
         return None
-    if tRd is not None and (not isinstance(tRd, Frame) or tRd.left):
-        return None
-    psi = 0.5 * (3.0 - jnp.sum(Rd * R, axis=(-1, -2)))
-    a = _mtv(R, _mv(Rd, Omega_d))
-    e_Omega = Omega - a
-    value = w_psi * psi + w_omega * jnp.sum(e_Omega**2, -1) + w_effort * jnp.sum(M**2, -1)
-    A = _mm(_mT(Rd), R)
-    pairs = ((2, 1), (0, 2), (1, 0))
-    vee = 0.5 * jnp.stack([A[..., i, j] - A[..., j, i] for i, j in pairs], -1)
+    psi, a, e_Omega = _integrand_errors(R, Omega, Rd, Omega_d)
+    value = _weighted(w_psi, w_omega, w_effort, psi, e_Omega, M)
+    vee = _vee(_mm(_mT(Rd), R))
     xi = tR.xi if tRd is None else tR.xi - tRd.xi
     d_e = [_cross(tR.xi, a)]
     if ts[4] is not None:
@@ -189,13 +187,13 @@ def _integrand_frame(xs, ts):
     if ref:
         d_e.append(-_mtv(R, _mv(Rd, functools.reduce(jnp.add, ref))))
     d_e = functools.reduce(jnp.add, d_e)
-    terms = [w_psi * jnp.sum(xi * vee, -1), 2.0 * w_omega * jnp.sum(e_Omega * d_e, -1)]
+    parts = [w_psi * jnp.sum(xi * vee, -1), 2.0 * w_omega * jnp.sum(e_Omega * d_e, -1)]
     if ts[6] is not None:
-        terms.append(2.0 * w_effort * jnp.sum(M * ts[6], -1))
+        parts.append(2.0 * w_effort * jnp.sum(M * ts[6], -1))
     for w, part in zip(ts[:3], (psi, jnp.sum(e_Omega**2, -1), jnp.sum(M**2, -1)), strict=True):
         if w is not None:
-            terms.append(w * part)
-    d = functools.reduce(jnp.add, terms)
+            parts.append(w * part)
+    d = functools.reduce(jnp.add, parts)
     return [value], [jnp.broadcast_to(d, value.shape).astype(value.dtype)]
 
 

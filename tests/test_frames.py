@@ -164,30 +164,37 @@ def test_one_step_of_every_method(method):
     _check(step, xs, ts, 1e-13, [framed, False])
 
 
+def _batched_seed_cost(method, dtype, program, seed: int, traj_cost):
+    """``k -> `` the mean of ``traj_cost`` over 6-step seed runs from 16 starts (the
+    scalarized Jacobian program's smallest batch), gains ``k``, in ``dtype``."""
+    R0, W0 = s.initial_states(jax.random.PRNGKey(seed), _engine.batched_layout("jacobian")[0])
+    sc0 = s.scenes.seed(dtype)
+
+    def f(k):
+        sc = with_gains(sc0, k[0], k[1])
+
+        def one(R, W):
+            sc1, R1 = with_start(sc, R.astype(dtype), W.astype(dtype))
+            dt, t0 = jnp.asarray(0.05, dtype), jnp.asarray(0.0, dtype)
+            return traj_cost(_simulate(sc1, method, dt, t0, 6, 1, program, R0=R1))
+
+        return jnp.mean(jax.vmap(one)(R0, W0))
+
+    return f
+
+
 @pytest.mark.parametrize("method", [s.RKMK4(coords="cayley"), s.LGVI()], ids=str)
 def test_scalarized_jacobian_with_three_number_tangents(method, monkeypatch):
     """The scalarized one-pass Jacobian (16 runs), whose attitude tangents are three
     numbers, equals JAX's autodiff (``jacfwd`` through the gains, a cost on the saved
     points and the final state) and the same program with nine numbers; LGVI, whose
     step gives a dense tangent, falls back to nine (`FrameError` caught once)."""
-    B = _engine.batched_layout("jacobian")[0]
-    sc0 = s.scenes.seed()
-    R0, W0 = s.initial_states(jax.random.PRNGKey(19), B)
 
     def cost(program):
-        def f(k):
-            sc = with_gains(sc0, k[0], k[1])
+        def traj(tr):
+            return jnp.sum(tr.M**2) + jnp.sum(tr.extras["e_R"]) + jnp.sum(tr.y.R[0] ** 3)
 
-            def one(R, W):
-                sc1, R1 = with_start(sc, R, W)
-                tr = _simulate(
-                    sc1, method, jnp.asarray(0.05), jnp.asarray(0.0), 6, 1, program, R0=R1
-                )
-                return jnp.sum(tr.M**2) + jnp.sum(tr.extras["e_R"]) + jnp.sum(tr.y.R[0] ** 3)
-
-            return jnp.mean(jax.vmap(one)(R0, W0))
-
-        return f
+        return _batched_seed_cost(method, jnp.float64, program, 19, traj)
 
     k = jnp.array([3.0, 1.5])
     ref = jax.jit(jax.jacfwd(cost("autodiff")))(k)
@@ -253,24 +260,12 @@ def _densified(fn, xs, ts, tol) -> list:
 def test_scalarized_jacobian_in_float32(monkeypatch):
     """Float32 runs (16, scalarized) carry three-number tangents too, and their ``jacfwd``
     agrees with JAX's autodiff of the float64 runs to float32's precision."""
-    B = _engine.batched_layout("jacobian")[0]
-    R0, W0 = s.initial_states(jax.random.PRNGKey(30), B)
 
     def cost(dtype, program):
-        sc0 = s.scenes.seed(dtype)
+        def traj(tr):
+            return jnp.sum(tr.M**2) + jnp.sum(tr.y.R[0] ** 3)
 
-        def f(k):
-            sc = with_gains(sc0, k[0], k[1])
-
-            def one(R, W):
-                sc1, R1 = with_start(sc, R.astype(dtype), W.astype(dtype))
-                dt, t0 = jnp.asarray(0.05, dtype), jnp.asarray(0.0, dtype)
-                tr = _simulate(sc1, s.LieEuler(), dt, t0, 6, 1, program, R0=R1)
-                return jnp.sum(tr.M**2) + jnp.sum(tr.y.R[0] ** 3)
-
-            return jnp.mean(jax.vmap(one)(R0, W0))
-
-        return f
+        return _batched_seed_cost(s.LieEuler(), dtype, program, 30, traj)
 
     k = jnp.array([3.0, 1.5])
     ref = jax.jit(jax.jacfwd(cost(jnp.float64, "autodiff")))(k)
