@@ -658,15 +658,26 @@ def test_bad_program_is_rejected():
         s.simulate(s.scenes.seed(), s.RKMK4(), 0.01, 10, save_every=3)
 
 
-def _seed_mean_cost(key, B: int, n_steps: int):
+def _seed_mean_cost(key, B: int, n_steps: int, save_every: int = 1):
     """``cost(program)``: the mean seed cost over ``B`` random starts as a function of the
-    two gains, run by the engine's ``program``."""
+    two gains, run by the engine's ``program``. With ``save_every`` 1 the cost's integral
+    is summed in the loop's carry; otherwise the integrand is saved every ``save_every``
+    steps (`so3jax._tune._rollout`)."""
     sc0 = _seed()
     R0, W0 = s.initial_states(key, B)
 
     def cost(program):
         return lambda k: s.expected_cost(
-            sc0, k[0], k[1], R0, W0, SEED_METHOD, DT, n_steps, program=program
+            sc0,
+            k[0],
+            k[1],
+            R0,
+            W0,
+            SEED_METHOD,
+            DT,
+            n_steps,
+            program=program,
+            save_every=save_every,
         )
 
     return cost
@@ -678,13 +689,16 @@ def test_scalarized_tangent_program_for_large_batches():
     equals JAX's autodiff; so does ``jacfwd``. The columns are the outer axis of every
     tangent component, ``(2, B)`` arrays, not ``(B, 2)`` (`_engine._columns_outside`)."""
     B = _engine.batched_layout("jacobian")[1]
-    cost = _seed_mean_cost(jax.random.PRNGKey(3), B, N)
-    f = _jit_grad(cost("auto"))
-    assert "conditional(" in f.lower(K0).compile().as_text()  # scalarized, with cuts
-    ref = _jit_grad(cost("autodiff"))(K0)
-    assert _rel(f(K0), ref) < 1e-10
-    jf = jax.jit(jax.jacfwd(cost("auto")))
-    assert _rel(jf(K0), ref) < 1e-10
+    for save_every in (1, 2):  # the integral summed in the carry; saved points
+        cost = _seed_mean_cost(jax.random.PRNGKey(3), B, N, save_every)
+        f = _jit_grad(cost("auto"))
+        assert "conditional(" in f.lower(K0).compile().as_text()  # scalarized, with cuts
+        ref = _jit_grad(cost("autodiff"))(K0)
+        assert _rel(f(K0), ref) < 1e-10
+        jf = jax.jit(jax.jacfwd(cost("auto")))
+        assert _rel(jf(K0), ref) < 1e-10
+    # With saved points nothing but the columns-outside layout appears (summed in the
+    # carry, the final state's tangents are moved once, after the loop, for the output).
     hlo = jf.lower(K0).as_text()
     assert f"tensor<2x{B}xf64>" in hlo and f"tensor<{B}x2xf64>" not in hlo
     # the Hessian's jvp of that program too (its values: test_second_derivatives_...),
