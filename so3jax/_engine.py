@@ -1726,12 +1726,17 @@ class _Loop:
             dc0 = _to_frames(_pick(mc, _floats(c0)), list(dc0), fr)
         col = jax.tree.map(lambda a: a[0], (dP, dc0))  # one column: the example
         ex = (P, c0) + col
-        body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut)
-        tobs, tobs_struct = sc.flat_program(functools.partial(self._tobs, mP, mc), ex, cut)
-        obs, obs_struct = sc.flat_program(lambda x: self.observe(x[0], x[1]), ex, cut)
         n_primal = len(sc.split((P, c0)))
         n_tangent = sum(math.prod(jnp.shape(a)) for a in jax.tree.leaves(col))
         n = jnp.shape(jax.tree.leaves((dP, dc0))[0])[0]
+        # One column here: `_columns_outside` batches the tangents over the columns
+        # around this program, and its cuts count that (`sc._eval_with_cuts`).
+        columns = [False] * n_primal + [True] * n_tangent if n == 1 else None
+        body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut, columns=columns)
+        tobs, tobs_struct = sc.flat_program(
+            functools.partial(self._tobs, mP, mc), ex, cut, columns=columns
+        )
+        obs, obs_struct = sc.flat_program(lambda x: self.observe(x[0], x[1]), ex, cut)
         flat0 = sc.split((P, c0)) + jax.vmap(sc.split)((dP, dc0))
         if n == 1:  # one column (`_columns_outside`): scalar tangent components
             vbody = body

@@ -383,3 +383,38 @@ def test_array_cuts_keep_values_and_derivatives(count_cuts):
     a, b = jax.vmap(pair, in_axes=(0, None), out_axes=(0, None))(xs, x)  # b: unbatched
     np.testing.assert_allclose(np.asarray(a), 2.0 * np.asarray(xs), rtol=1e-15)
     np.testing.assert_allclose(np.asarray(b), 3.0 * np.asarray(x), rtol=1e-15)
+
+
+def test_values_consumed_by_batched_columns_are_cut():
+    """A value that a column-batched operation consumes is cut from a cone of
+    `COLUMN_CUT_CONE` operations (XLA would recompute it once per column): with the
+    inputs' ``columns`` flags, not without; values unchanged, the columns vmapped."""
+    from so3jax._scalarize import COLUMN_CUT_CONE, cut_index, flat_program
+
+    def fn(x):  # x[:2] primal, x[2] a tangent column
+        p = x[0] * x[1] + x[0] - x[1] * x[1] + 0.5 * x[0]  # a cone of 6 operations, one use
+        q = x[0] + 1.0  # one operation
+        return jnp.stack([p * x[2], q * x[2], x[0] - x[1]])
+
+    assert 1 < COLUMN_CUT_CONE <= 6
+    ex = jnp.array([0.3, -0.7, 1.1])
+    xs = jax.random.normal(jax.random.PRNGKey(1), (64, 3))
+    cols = jax.random.normal(jax.random.PRNGKey(2), (2, 64))
+
+    def run(columns):
+        def one(col):
+            prog, _ = flat_program(fn, ex, cut_index(xs), columns=columns)
+            return jnp.stack(prog([xs[:, 0], xs[:, 1], col]))
+
+        return jax.vmap(one)(cols)
+
+    def cuts(columns):
+        eqns = jax.make_jaxpr(lambda: run(columns))().eqns
+        cond = [e for e in eqns if e.primitive.name == "cond"]
+        return sum(len(e.invars) - 1 for e in cond)  # values through a cut
+
+    assert cuts([False, False, False]) == 0
+    assert cuts([False, False, True]) == 1  # p, not q
+    ref = jax.vmap(lambda c: jax.vmap(fn)(jnp.stack([xs[:, 0], xs[:, 1], c], 1)).T)(cols)
+    out = run([False, False, True])
+    np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=1e-14, atol=1e-14)
