@@ -709,6 +709,26 @@ def test_scalarized_tangent_program_for_large_batches():
     assert f"tensor<{B}x2xf64>" not in hlo
 
 
+def test_scalarized_jacobian_cuts_what_its_columns_consume(monkeypatch):
+    """From `COLUMN_CUTS_FROM` runs the scalarized Jacobian program also cuts the values
+    its tangent columns consume (`so3jax._scalarize.COLUMN_CUT_CONE`): more cuts in the
+    program, and ``grad`` still equals JAX's autodiff (here from 16 runs, at 16)."""
+    B = _engine.batched_layout("jacobian")[1]
+    cost = _seed_mean_cost(jax.random.PRNGKey(5), B, N)
+
+    def cuts():
+        jax.clear_caches()  # JAX keeps the traced derivative of the run's jitted program
+        return _jit_grad(cost("auto")).lower(K0).as_text().count("stablehlo.case")
+
+    monkeypatch.setattr(_engine, "COLUMN_CUTS_FROM", B + 1)
+    plain = cuts()
+    monkeypatch.setattr(_engine, "COLUMN_CUTS_FROM", B)
+    assert cuts() > plain > 0
+    ref = _jit_grad(cost("autodiff"))(K0)
+    assert _rel(_jit_grad(cost("auto"))(K0), ref) < 1e-10
+    jax.clear_caches()  # leave no program with these cuts to later tests
+
+
 def test_scalarized_jacobian_without_cuts(monkeypatch):
     """The scalarized Jacobian program without fusion cuts (a GPU's, from 4096 runs there),
     with its columns outside the runs: ``grad`` and ``jacfwd`` equal JAX's autodiff,
