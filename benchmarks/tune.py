@@ -56,6 +56,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import so3jax as so3  # noqa: E402
 from so3jax import _engine  # noqa: E402
 from so3jax._integrators import METHODS, method_by_name  # noqa: E402
+from so3jax._tune import with_gains  # noqa: E402
 
 #: The variants, in the order they run (the first is the baseline of the ratios).
 VARIANTS = [
@@ -87,6 +88,19 @@ class nine_numbers:
             return self.fn(k)
         finally:
             _engine.FRAME_TANGENTS = old
+
+
+def trajectory_cost(scene, k, R0, W0, method, n, program="auto"):
+    """A user's own cost on saved runs: the mean `tracking_cost` of `simulate`'s
+    trajectories (every state saved), for gains ``k``."""
+
+    def one(R, W):
+        sc = with_gains(scene, k[0], k[1])
+        return so3.tracking_cost(so3.simulate(sc, method, 1e-2, n, R0=R, Omega0=W), sc)
+
+    if program != "auto":
+        raise ValueError("the trajectory cost runs the default program only")
+    return jnp.mean(jax.vmap(one)(R0, W0))
 
 
 def measure(fn, arg, repeats):
@@ -164,6 +178,14 @@ def main(argv=None):
     p.add_argument("--batches", nargs="+", type=int, help="batch sizes (default 16 256)")
     p.add_argument("--horizons", nargs="+", type=int, help="step counts (default 1000 4000)")
     p.add_argument(
+        "--cost",
+        choices=("rollout", "trajectory"),
+        default="rollout",
+        help="rollout: expected_cost (the cost summed as the runs step); trajectory: a user's "
+        "own cost on saved runs, the mean of tracking_cost(simulate(...)) (writes "
+        "tune-trajectory.json; the forward pass, default reverse and jacfwd)",
+    )
+    p.add_argument(
         "--variants",
         nargs="+",
         choices=VARIANTS,
@@ -182,10 +204,13 @@ def main(argv=None):
     scene = so3.scenes.seed()
     k = jnp.array([8.81, 2.54])
     rows = []
+    bench = "tune" if args.cost == "rollout" else "tune-trajectory"
     for B, n in [(B, n) for B in batches for n in horizons]:
         R0, W0 = so3.initial_states(jax.random.key(0), B)
 
         def cost(k, ck="auto", program="auto", n=n, R0=R0, W0=W0):
+            if args.cost == "trajectory":  # saves every state; ``ck`` does not apply
+                return trajectory_cost(scene, k, R0, W0, method, n, program)
             return so3.expected_cost(
                 scene, k[0], k[1], R0, W0, method, 1e-2, n, checkpoint_every=ck, program=program
             )
@@ -204,16 +229,19 @@ def main(argv=None):
             "Hessian, autodiff": jax.hessian(lambda k: cost(k, program="autodiff")),
         }
         assert list(variants) == VARIANTS
+        if args.cost == "trajectory":
+            keep = ("forward pass", "reverse (default)", "forward mode (jacfwd)")
+            variants = {k: v for k, v in variants.items() if k in keep}
         if args.variants:  # the forward pass stays: it is the baseline of the ratios
             variants = {k: v for k, v in variants.items() if k in args.variants or k == VARIANTS[0]}
         elif args.quick:  # the smoke run compiles the fewest programs
-            variants.pop("forward pass, array program")
-            variants.pop("reverse, no checkpoints")
-            variants.pop("reverse, nine-number attitude tangents")
-            variants.pop("reverse, checkpointed")
-            variants.pop("forward mode, JAX's jvp")
-            variants.pop("Hessian (default)")
-            variants.pop("Hessian, autodiff")
+            variants.pop("forward pass, array program", None)
+            variants.pop("reverse, no checkpoints", None)
+            variants.pop("reverse, nine-number attitude tangents", None)
+            variants.pop("reverse, checkpointed", None)
+            variants.pop("forward mode, JAX's jvp", None)
+            variants.pop("Hessian (default)", None)
+            variants.pop("Hessian, autodiff", None)
         base = None
         for name, fn in variants.items():
             if isinstance(fn, nine_numbers):  # JAX caches derivatives of jitted programs
@@ -231,18 +259,20 @@ def main(argv=None):
                 temp_ratio=r["temp_bytes"] / max(base["temp_bytes"], 1),
             )
             rows.append(r)
-            C.write_partial(args, "tune", rows)
+            C.write_partial(args, bench, rows)
             print(
                 f"B={B:4d} n={n:5d} {name:28s} {r['seconds'] * 1e3:9.2f} ms "
                 f"({r['time_ratio']:5.1f}x)  "
                 f"temp {r['temp_bytes'] / 2**20:8.2f} MiB  compile {r['compile_s']:.1f} s"
             )
-    json_path, png_path = C.output_paths(args, "tune")
+    json_path, png_path = C.output_paths(args, bench)
     C.write_json(
-        json_path, {"benchmark": "tune", "quick": args.quick, "env": C.environment(), "rows": rows}
+        json_path, {"benchmark": bench, "quick": args.quick, "env": C.environment(), "rows": rows}
     )
     platform = jax.devices()[0].platform
     fig = figure(rows, batches, horizons, method_name, platform)
+    if args.cost == "trajectory":
+        fig.suptitle(f"derivatives of a cost on saved runs, {method_name}, {platform}")
     C.save_figure(fig, png_path)
 
 

@@ -16,8 +16,8 @@ import pytest
 BENCH = Path(__file__).resolve().parent.parent / "benchmarks"
 
 
-def _run(script: str, out: Path, repeats: bool = True) -> dict:
-    extra = ["--repeats", "1"] if repeats else []
+def _run(script: str, out: Path, repeats: bool = True, args=(), name=None) -> dict:
+    extra = (["--repeats", "1"] if repeats else []) + list(args)
     argv, path = sys.argv, list(sys.path)
     sys.argv = [str(BENCH / script), "--quick", *extra, "--out", str(out)]
     sys.path.insert(0, str(BENCH))  # the scripts import _common from their folder
@@ -26,7 +26,7 @@ def _run(script: str, out: Path, repeats: bool = True) -> dict:
     finally:
         sys.argv, sys.path[:] = argv, path
         plt.close("all")
-    name = script.removesuffix(".py")
+    name = name or script.removesuffix(".py")
     js, png = out / f"{name}-quick.json", out / f"{name}-quick.png"
     assert js.is_file() and png.is_file()
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -108,6 +108,14 @@ def test_sweep_and_tune_quick(tmp_path):
     forward = [r for r in tune["rows"] if r["variant"] == "forward pass"]
     assert forward and all(r["time_ratio"] == 1.0 for r in forward)
     assert all(r["seconds"] > 0 for r in tune["rows"])
+    # a user's own cost on saved runs: its forward pass is the baseline of its rows
+    traj = _run("tune.py", tmp_path, False, ["--cost", "trajectory"], "tune-trajectory")
+    assert [r["variant"] for r in traj["rows"]] == [
+        "forward pass",
+        "reverse (default)",
+        "forward mode (jacfwd)",
+    ]
+    assert traj["rows"][0]["time_ratio"] == 1.0 and traj["benchmark"] == "tune-trajectory"
 
 
 @pytest.mark.slow
