@@ -30,10 +30,14 @@ memory (`compiled.memory_analysis()`), at two horizons and two batch sizes;
 ratios are against the default forward pass measured in the same run. Issue 11's
 target: a gradient at most 3x that forward pass.
 
-Writes ``results/tune[-quick].json`` and ``.png``.
+Writes ``results/tune[-quick].json`` and ``.png``. With ``--cost trajectory`` the cost
+is a user's own one on saved runs instead (the mean ``tracking_cost(simulate(...))``,
+every state saved), for the forward pass, the default reverse pass and ``jacfwd``:
+``results/tune-trajectory[-quick].json`` and ``.png``.
 
     python benchmarks/tune.py            # 10 s and 40 s horizons, B = 16 and 256
     python benchmarks/tune.py --quick    # smoke run: 1 s, B = 2, LieEuler
+    python benchmarks/tune.py --cost trajectory
 """
 
 from __future__ import annotations

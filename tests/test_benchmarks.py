@@ -119,6 +119,16 @@ def test_sweep_and_tune_quick(tmp_path):
 
 
 @pytest.mark.slow
+def test_element_work_quick(tmp_path):
+    """The counted work of a loop step: the gradient's (two tangent columns over one
+    primal) between 1.5x and 4x the forward pass's, both found (nonzero)."""
+    data = _run("element_work.py", tmp_path, False, name="element-work")
+    fwd, grad = data["rows"]
+    assert fwd["variant"] == "forward pass" and fwd["step_work"] > 0
+    assert 1.5 < grad["work_ratio"] < 4
+
+
+@pytest.mark.slow
 def test_difftune_quick(tmp_path):
     data = _run("difftune.py", tmp_path)
     rmse = data["rmse_history"]
