@@ -117,7 +117,7 @@ from jax.extend import core as jex_core
 
 from . import _scalarize as sc
 from ._frames import Frame, FrameError, dense as frames_dense, frame_jvp
-from ._so3 import _mT, _vee
+from ._so3 import _mm, _mT, _vee
 
 try:  # frontend attributes on the ops traced inside (`_hoisted`)
     from jax.experimental.xla_metadata import set_xla_metadata
@@ -211,7 +211,7 @@ def _dense_mask(mc) -> tuple:
 def _to_frames(cm, dc, fr) -> list:
     """Dense rotation tangents (``n`` columns in front) as `Frame` ``xi``: ``vee(R^T dR)``
     (exact for the zero tangents the Jacobian programs start from)."""
-    return [_vee(jnp.matmul(_mT(R), d)) if f else d for R, d, f in zip(cm, dc, fr, strict=True)]
+    return [_vee(_mm(_mT(R), d)) if f else d for R, d, f in zip(cm, dc, fr, strict=True)]
 
 
 def _from_frames(cm, dc, fr) -> list:

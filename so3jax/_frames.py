@@ -78,16 +78,12 @@ def frame_rule(name: str):
     return register
 
 
-def _cross(a, b):
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
 def dense(P, t):
     """The tangent ``t`` of ``P`` as an array (``None`` stays ``None``)."""
     if not isinstance(t, Frame):
         return t
+    from ._so3 import _cross  # `_so3` imports this module for its rules
+
     xi = t.xi.astype(jnp.result_type(P))
     if t.left:  # columns of hat(xi) P are xi x p_j
         return jnp.swapaxes(_cross(xi[..., None, :], jnp.swapaxes(P, -1, -2)), -1, -2)
