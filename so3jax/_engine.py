@@ -266,6 +266,36 @@ def _frame_observe(o, Pm, cm, dP, dc, fr):
     return jax.tree.unflatten(treedef, tan)
 
 
+#: An observation's kind in the Jacobian programs (`_Loop.obs_kinds`): no tangent (not
+#: computed; zeros outside), a dense one, or a `Frame` ``xi`` (right, left), three numbers
+#: per rotation that `_jacobian_jvp` turns dense after the loop.
+OBS_ZERO, OBS_DENSE, OBS_RIGHT, OBS_LEFT = 0, 1, 2, 3
+
+
+def _obs_kind(x, t) -> int:
+    """The kind of an observation ``x`` whose tangent `frame_jvp` gave as ``t``."""
+    if t is None:
+        return OBS_ZERO
+    if FRAME_TANGENTS and isinstance(t, Frame):
+        return OBS_LEFT if t.left else OBS_RIGHT
+    return OBS_DENSE
+
+
+def _obs_tangent(x, t, kind: int):
+    """The tangent ``t`` of the observation ``x`` (``None``, an array or a `Frame`) as its
+    ``kind`` stores it: dense, or ``xi`` (``vee(R^T dR)`` or ``vee(dR R^T)`` from a dense one,
+    which for a rotation ``R`` is ``dR`` exactly in exact arithmetic)."""
+    if kind == OBS_DENSE:
+        return jnp.zeros_like(x) if t is None else frames_dense(x, t)
+    left = kind == OBS_LEFT
+    if t is None:
+        return jnp.zeros(jnp.shape(x)[:-2] + (3,), jnp.result_type(x))
+    if isinstance(t, Frame) and t.left == left:
+        return t.xi.astype(jnp.result_type(x))
+    d = frames_dense(x, t)
+    return _vee(_mm(d, _mT(x)) if left else _mm(_mT(x), d))
+
+
 def _with_frames(mc, c0, nz_c) -> tuple:
     """``mc`` with `FRAME` for each masked carry leaf that may carry a `Frame`: rotation-
     shaped, without an input tangent (it starts at zero, ``R hat(0)`` for any ``R``).
@@ -396,7 +426,7 @@ def _mask_eval(jaxpr, ins: list) -> list:
     return [read(v) for v in jaxpr.outvars]
 
 
-def _tangent_masks(step, P, c0, nz_P: list, nz_c: list) -> tuple[tuple, tuple]:
+def _tangent_masks(step, P, c0, nz_P: list, nz_c: list, elements: bool = False) -> tuple:
     """Float leaves of ``P`` and of the carry whose tangents can be nonzero.
 
     ``nz_P``, ``nz_c`` flag the float leaves with nonzero input tangents. A
@@ -404,6 +434,11 @@ def _tangent_masks(step, P, c0, nz_P: list, nz_c: list) -> tuple[tuple, tuple]:
     depend on a masked leaf (a fixed point over the step's jaxpr): with the
     gains differentiated, the reference attitude, the time and the status stay
     out of the tangent program.
+
+    ``elements=True`` adds a third result: per leaf of ``(P, c0)`` (every leaf), the
+    element mask of what can have a nonzero tangent, from the same fixed point run
+    on elements. It is finer than the leaf flags: a body and a reference attitude
+    stacked in one carry leaf are told apart (`_Loop.obs_kinds`).
     """
     pl, pt = jax.tree.flatten(P)
     cl, ct = jax.tree.flatten(c0)
@@ -427,7 +462,16 @@ def _tangent_masks(step, P, c0, nz_P: list, nz_c: list) -> tuple[tuple, tuple]:
             break
         dep_c = new
     mc = [d for d, x in zip(dep_c, cl, strict=True) if _is_float(x)]
-    return tuple(nz_P), tuple(mc)
+    if not elements:
+        return tuple(nz_P), tuple(mc)
+    ins = [np.full(jnp.shape(a), bool(d)) for a, d in zip(pl + cl, dep_P + expand(cl, nz_c))]
+    while True:
+        out = _mask_eval(jaxpr, ins)
+        new = ins[: len(pl)] + [a | b for a, b in zip(ins[len(pl) :], out, strict=True)]
+        if all(np.array_equal(a, b) for a, b in zip(new, ins, strict=True)):
+            break
+        ins = new
+    return tuple(nz_P), tuple(mc), ins
 
 
 def _segment_blocks(n: int, target: int) -> int:
@@ -1658,6 +1702,63 @@ class _Loop:
             return _frame_observe(o, _pick(mP, pf), _pick(mc, cf), dP, dc, fr)
         return jax.jvp(o, (_pick(mP, pf), _pick(mc, cf)), (list(dP), list(dc)))[1]
 
+    def _obs_tangents(self, mP, mc, x) -> tuple[list, list]:
+        """The observations after a state and their tangents as `frame_jvp` gives them
+        (``None``, an array or a `Frame`), as flat lists."""
+        P, c, dP, dc = x
+        pf, cf = _floats(P), _floats(c)
+
+        def o(Pm, cm):
+            Pp = _with_floats(P, _fill(mP, Pm, pf))
+            return self.observe(Pp, _with_floats(c, _fill(mc, cm, cf)))
+
+        outs, touts, _ = _jvp_with_frames(o, _pick(mP, pf), _pick(mc, cf), dP, dc, _frame_flags(mc))
+        return outs, touts
+
+    def obs_kinds(self, mP, mc, P, c0, elements: list) -> tuple:
+        """Per observation leaf, its kind in the Jacobian programs (`OBS_ZERO`, ...): how
+        its tangent comes out of `frame_jvp` with the tangents ``mP``, ``mc`` (``mc``'s
+        `FRAME` leaves as frames), traced once, abstractly. `OBS_ZERO` too where no
+        element of it depends on the elements flagged in ``elements`` (per leaf of
+        ``(P, c0)``, `_tangent_masks`): the reference attitude observed from a carry
+        leaf that stacks it with the body's."""
+        pl, pt = jax.tree.flatten(P)
+        cl, ct = jax.tree.flatten(c0)
+
+        def obs(*leaves):
+            P_, c_ = (
+                jax.tree.unflatten(pt, leaves[: len(pl)]),
+                jax.tree.unflatten(ct, leaves[len(pl) :]),
+            )
+            return jax.tree.leaves(self.observe(P_, c_))
+
+        hit = [bool(m.any()) for m in _mask_eval(_abstract_jaxpr(obs, pl + cl), elements)]
+        pf, cf = _floats(P), _floats(c0)
+        fr = _frame_flags(mc)
+        kinds = []
+
+        def spec(x, frame=False):
+            shape = jnp.shape(x)[:-2] + (3,) if frame else jnp.shape(x)
+            return jax.ShapeDtypeStruct(shape, jnp.result_type(x))
+
+        def probe(dP, dc):
+            outs, touts = self._obs_tangents(mP, mc, (P, c0, dP, dc))
+            kinds[:] = [_obs_kind(o, t) for o, t in zip(outs, touts, strict=True)]
+            return 0
+
+        dP = [spec(x) for x in _pick(mP, pf)]
+        dc = [spec(x, f) for x, f in zip(_pick(mc, cf), fr, strict=True)]
+        jax.make_jaxpr(probe)(dP, dc)
+        return tuple(k if h else OBS_ZERO for k, h in zip(kinds, hit, strict=True))
+
+    def _jac_tobs(self, mP, mc, mo, x) -> list:
+        """The Jacobian programs' observation tangents of one column: the leaves whose
+        kind in ``mo`` is not `OBS_ZERO`, each as its kind stores it (`_obs_tangent`)."""
+        outs, touts = self._obs_tangents(mP, mc, x)
+        return [
+            _obs_tangent(o, t, k) for o, t, k in zip(outs, touts, mo, strict=True) if k != OBS_ZERO
+        ]
+
     def tan_array(self, mP, mc, P, c0, dP, dc0):
         step = functools.partial(self._tstep, mP, mc)
         x, dys = self._save_loop(step, functools.partial(self._tobs, mP, mc), (P, c0, dP, dc0))
@@ -1676,18 +1777,20 @@ class _Loop:
 
     # ---------------- Jacobian (a few inputs: primal and columns in one pass) ----------------
 
-    def jac_array(self, mP, mc, P, c0, dP, dc0):
+    def jac_array(self, mP, mc, mo, P, c0, dP, dc0):
         """The run and its Jacobian's columns in one pass, array layout.
 
         ``dP``, ``dc0`` are the masked tangents with a leading axis of ``n``
         columns; the primal is computed once and the ``n`` tangents are batched
         over it. Returns ``(ys, cN, dys, dcN)`` with a column axis after the
-        saved-point axis of ``dys`` and in front of ``dcN``. Rotations' tangents are
+        saved-point axis of ``dys`` and in front of ``dcN``. ``dys`` is a list: the
+        observations whose kind in ``mo`` (`obs_kinds`) is not `OBS_ZERO`, as their kind
+        stores them (`_obs_tangent`). Rotations' tangents are
         nine numbers here whatever ``mc`` says (`FRAME`): three numbers as small arrays
         of their own made the program about 1.8x slower on a CPU (more kernels).
         """
         mc = _dense_mask(mc)
-        tobs = functools.partial(self._tobs, mP, mc)
+        tobs = functools.partial(self._jac_tobs, mP, mc, mo)
 
         def observe(x):
             P, c, dP, dc = x
@@ -1712,7 +1815,7 @@ class _Loop:
         _, c1, _, dc1 = self._jac_body(mP, _dense_mask(mc), (P, c, dP, dc))
         return c1, dc1
 
-    def jac_scalar(self, mP, mc, P, c0, dP, dc0, cut=None, batched=None, one=None):
+    def jac_scalar(self, mP, mc, mo, P, c0, dP, dc0, cut=None, batched=None, one=None):
         """`jac_array` as a scalarized program: tangent components are ``(n,)`` arrays.
 
         The carry leaves flagged `FRAME` in ``mc`` carry their tangents as `Frame`
@@ -1721,14 +1824,14 @@ class _Loop:
         """
         while any(_frame_flags(mc)):
             try:
-                return self._jac_scalar(mP, mc, P, c0, dP, dc0, cut, batched, one)
+                return self._jac_scalar(mP, mc, mo, P, c0, dP, dc0, cut, batched, one)
             except FrameError as e:  # those leaves' tangents come out dense: nine numbers
                 at = [i for i, m in enumerate(mc) if m]
                 dense = {at[j] for j in e.indices}
                 mc = tuple(True if i in dense else m for i, m in enumerate(mc))
-        return self._jac_scalar(mP, mc, P, c0, dP, dc0, cut, batched, one)
+        return self._jac_scalar(mP, mc, mo, P, c0, dP, dc0, cut, batched, one)
 
-    def _jac_scalar(self, mP, mc, P, c0, dP, dc0, cut, batched, one):
+    def _jac_scalar(self, mP, mc, mo, P, c0, dP, dc0, cut, batched, one):
         fr = _frame_flags(mc)
         if any(fr):
             dc0 = _to_frames(_pick(mc, _floats(c0)), list(dc0), fr)
@@ -1744,7 +1847,7 @@ class _Loop:
             columns = [False] * n_primal + [True] * n_tangent
         body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut, columns=columns)
         tobs, tobs_struct = sc.flat_program(
-            functools.partial(self._tobs, mP, mc), ex, cut, columns=columns
+            functools.partial(self._jac_tobs, mP, mc, mo), ex, cut, columns=columns
         )
         obs, obs_struct = sc.flat_program(lambda x: self.observe(x[0], x[1]), ex, cut)
         flat0 = sc.split((P, c0)) + jax.vmap(sc.split)((dP, dc0))
@@ -2218,9 +2321,12 @@ def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
         n_lin = sum(math.prod(jnp.shape(x)) for x in lin)
         if reverse == "auto" and n_lin > FORWARD_JACOBIAN_MAX:
             return _checkpointed_jvp(loop, primals, tangents)
-        mP, mc = _tangent_masks(loop.step, P, c0, nz[: len(pf)], nz[len(pf) :])
         if reverse == "auto":
-            return _jacobian_jvp(loop, P, c0, nz, lin, mP, mc)
+            mP, mc, elements = _tangent_masks(
+                loop.step, P, c0, nz[: len(pf)], nz[len(pf) :], elements=True
+            )
+            return _jacobian_jvp(loop, P, c0, nz, lin, mP, mc, elements)
+        mP, mc = _tangent_masks(loop.step, P, c0, nz[: len(pf)], nz[len(pf) :])
         out = fwd(P, c0)
         tan = _dual(
             functools.partial(loop.tan_array, mP, mc),
@@ -2261,7 +2367,7 @@ def _first_order_only_jvp(why, primals, tangents):
     raise NotImplementedError(why)
 
 
-def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple):
+def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple, elements: list):
     """The run's value and tangent from its Jacobian, computed in one pass.
 
     ``lin`` (the nonzero input tangents, ``n`` scalars in all) is flattened into
@@ -2276,17 +2382,29 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple)
     cols = _unit_columns(lin)
     n = len(cols[0])
     mc = _with_frames(mc, c0, nz[len(pf) :])
+    mo = loop.obs_kinds(mP, mc, P, c0, elements)
     dP, dc = _masked_tangents(nz, cols, mP, mc, pf, cf, (n,))
     jac = _dual(
-        functools.partial(loop.jac_array, mP, mc),
-        functools.partial(loop.jac_scalar, mP, mc),
+        functools.partial(loop.jac_array, mP, mc, mo),
+        functools.partial(loop.jac_scalar, mP, mc, mo),
         "jacobian",
         settle=functools.partial(_settle_jacobian_tangents, loop, mP, mc),
     )
     ys, cN, Jys, JcN = jac(P, c0, dP, dc)
     coef = jnp.concatenate([jnp.ravel(x) for x in lin])
 
-    dys = jax.tree.map(lambda J: jnp.tensordot(coef.astype(J.dtype), J, axes=([0], [1])), Jys)
+    # Observations without a tangent get zeros here (the loop neither computes nor saves
+    # them); frames become dense here, where their three numbers are contracted first.
+    J_it = iter(Jys)
+    dys = []
+    for y, kind in zip(jax.tree.leaves(ys), mo, strict=True):
+        if kind == OBS_ZERO:
+            dys.append(jnp.zeros_like(y))
+            continue
+        J = next(J_it)
+        d = jnp.tensordot(coef.astype(J.dtype), J, axes=([0], [1]))
+        dys.append(d if kind == OBS_DENSE else frames_dense(y, Frame(d, kind == OBS_LEFT)))
+    dys = jax.tree.unflatten(jax.tree.structure(ys), dys)
     dcN = [jnp.tensordot(coef.astype(J.dtype), J, axes=1) for J in JcN]
     dcNf = _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(cN)])
     return (ys, cN), (dys, _tangent_tree(cN, dcNf))

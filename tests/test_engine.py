@@ -844,8 +844,8 @@ def test_one_pass_jacobian_through_gains_and_initial_rates(monkeypatch):
     seen = []
     masks = _engine._tangent_masks
 
-    def spy(*args):
-        seen.append(masks(*args))
+    def spy(*args, **kwargs):
+        seen.append(masks(*args, **kwargs))
         return seen[-1]
 
     monkeypatch.setattr(_engine, "_tangent_masks", spy)
