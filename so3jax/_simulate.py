@@ -307,10 +307,8 @@ def _simulate(
     def observe(P, carry):
         sc, _, dt, t0 = unpack(P)
         (groups, x), k, code = carry[:3]
-        t = t0 + k * dt
-        obs = sc.observe(t, join_groups(groups, x))
-        obs = jax.tree.map(lambda a: jnp.where(code == OK, a, jnp.nan), obs)
-        return t, obs
+        obs = sc.observe(t0 + k * dt, join_groups(groups, x))
+        return jax.tree.map(lambda a: jnp.where(code == OK, a, jnp.nan), obs)
 
     start = split_groups(y0, R0)
     y0 = join_groups(*start)
@@ -318,11 +316,15 @@ def _simulate(
     init = (start, jnp.array(0, i32), jnp.array(OK, i32), jnp.array(-1, i32))
     if compensated:
         init = init + (jnp.zeros_like(y0.R),)
-    (ts, obs), ((groups, x), _, code, bad, *_) = run(
+    obs, ((groups, x), _, code, bad, *_) = run(
         step, observe, params, init, n_save * save_every, save_every, program=program
     )
     y = join_groups(groups, x)
     obs0 = scene.observe(t0, y0)
-    t = jnp.concatenate([t0[None], ts])
+    # The saved times are the step counter's, ``t0 + k dt`` as the step has them. Computed
+    # here, not saved by the loop, they stay unbatched where ``t0`` and ``dt`` are (a
+    # sweep's runs): a cost on the trajectory evaluates the reference once per time.
+    k = save_every * jnp.arange(n_save + 1, dtype=i32)
+    t = t0 + k * dt
     obs = jax.tree.map(lambda a0, a: jnp.concatenate([a0[None], a]), obs0, obs)
     return _trajectory(t, obs, Status(code=code, step=bad), y)
