@@ -464,7 +464,8 @@ def _tangent_masks(step, P, c0, nz_P: list, nz_c: list, elements: bool = False) 
     mc = [d for d, x in zip(dep_c, cl, strict=True) if _is_float(x)]
     if not elements:
         return tuple(nz_P), tuple(mc)
-    ins = [np.full(jnp.shape(a), bool(d)) for a, d in zip(pl + cl, dep_P + expand(cl, nz_c))]
+    flags = dep_P + expand(cl, nz_c)
+    ins = [np.full(jnp.shape(a), bool(d)) for a, d in zip(pl + cl, flags, strict=True)]
     while True:
         out = _mask_eval(jaxpr, ins)
         new = ins[: len(pl)] + [a | b for a, b in zip(ins[len(pl) :], out, strict=True)]
