@@ -2404,11 +2404,30 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple,
             continue
         J = next(J_it)
         d = jnp.tensordot(coef.astype(J.dtype), J, axes=([0], [1]))
-        dys.append(d if kind == OBS_DENSE else frames_dense(y, Frame(d, kind == OBS_LEFT)))
+        dys.append(d if kind == OBS_DENSE else _frame_dense(y, d, kind == OBS_LEFT))
     dys = jax.tree.unflatten(jax.tree.structure(ys), dys)
     dcN = [jnp.tensordot(coef.astype(J.dtype), J, axes=1) for J in JcN]
     dcNf = _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(cN)])
     return (ys, cN), (dys, _tangent_tree(cN, dcNf))
+
+
+def _frame_dense(R, xi, left: bool):
+    """``R hat(xi)`` (``left``: ``hat(xi) R``) for ``xi`` of shape ``R.shape[:-1]``, written
+    with splits and concatenations only, so that JAX's transpose (``grad`` of a cost on the
+    saved rotations) is elementwise too.
+
+    `so3jax._frames.dense` broadcasts ``xi`` over ``R``'s rows and slices both; JAX
+    transposes the broadcast into a sum over an axis of three (which XLA's CPU compiler
+    hands to a library reduction) and each slice into a pad. Here ``xi`` is concatenated
+    three times (transposed: three slices added) and components are split (transposed:
+    concatenated).
+    """
+    if left:  # hat(xi) R = -(R^T hat(xi))^T
+        return -jnp.swapaxes(_frame_dense(jnp.swapaxes(R, -1, -2), xi, False), -1, -2)
+    X = jnp.concatenate([xi[..., None, :].astype(R.dtype)] * 3, axis=-2)
+    r0, r1, r2 = jnp.split(R, 3, axis=-1)
+    x0, x1, x2 = jnp.split(X, 3, axis=-1)  # rows of R hat(xi) are r_i x xi
+    return jnp.concatenate([r1 * x2 - r2 * x1, r2 * x0 - r0 * x2, r0 * x1 - r1 * x0], axis=-1)
 
 
 def _unit_columns(xs: list) -> list:

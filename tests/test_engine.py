@@ -822,6 +822,75 @@ def test_scalarized_jacobian_of_trajectories():
     assert _rel(value, jax.jit(cost("array"))(K0)) < 1e-12
 
 
+def test_jacobian_observation_kinds(monkeypatch):
+    """The one-pass Jacobian saves each observation as its tangent needs: nothing for one
+    that depends on no differentiated input (a reference attitude stacked in the body's
+    carry leaf), three numbers for a rotation (a right frame ``R hat(xi)``, a left one for
+    ``R^T``), nine for anything else. ``grad`` and ``jacfwd`` of a cost on all of them
+    equal autodiff: one run (array program) and 32 (scalarized)."""
+    from so3jax import _so3
+
+    def step(P, c):
+        R, w = c
+        k, wd = P
+        w1 = w - 0.05 * k * (w - wd) + 0.05 * jnp.cross(w, R[0, 2])
+        ref = _so3._rmul_exp(R[1], jnp.array([0.02, 0.0, -0.01]))  # moved by no input
+        return jnp.stack([_so3._rmul_exp(R[0], 0.05 * w1), ref]), w1
+
+    def observe(P, c):
+        R, w = c
+        return {"R": R[0], "RT": R[0].T, "ref": R[1], "prod": R[0] @ R[1], "w": w}
+
+    def cost(program, R0):
+        def f(P):
+            ys, cN = _engine.run(
+                step, observe, P, (R0, jnp.array([0.3, -0.2, 0.5])), 12, 2, program=program
+            )
+            return sum(jnp.sum(jnp.sin(y * (i + 1))) for i, y in enumerate(jax.tree.leaves(ys)))
+
+        return f
+
+    kinds = []
+    obs_kinds = _engine._Loop.obs_kinds
+    monkeypatch.setattr(
+        _engine._Loop, "obs_kinds", lambda *a: kinds.append(obs_kinds(*a)) or kinds[-1]
+    )
+    P = (jnp.asarray(2.0), jnp.array([0.4, 0.1, -0.3]))
+    Rs = s.exp(jax.random.normal(jax.random.PRNGKey(3), (32, 3)))
+    for B in (1, 32):
+        R0 = jnp.stack([Rs[:B], jnp.broadcast_to(Rs[-1], (B, 3, 3))], axis=1)
+
+        def mean(program, R0=R0):
+            return lambda P: jnp.mean(jax.vmap(lambda R: cost(program, R)(P))(R0))
+
+        if B == 1:
+            mean = lambda program, R0=R0: cost(program, R0[0])  # noqa: E731
+        ref = jax.jit(jax.grad(mean("autodiff")))(P)
+        for d in (jax.grad, jax.jacfwd):
+            got = jax.jit(d(mean("auto")))(P)
+            for g, r in zip(jax.tree.leaves(got), jax.tree.leaves(ref), strict=True):
+                assert _rel(g, r) < 1e-10, (B, d.__name__)
+    # leaves in key order: R, RT, prod, ref, w
+    K = _engine
+    assert kinds and set(kinds) == {(K.OBS_RIGHT, K.OBS_LEFT, K.OBS_DENSE, K.OBS_ZERO, K.OBS_DENSE)}
+
+
+def test_frame_dense_and_its_transpose():
+    """`_engine._frame_dense` is `so3jax._frames.dense` (right and left frames), and JAX's
+    transposes of the two agree."""
+    from so3jax._frames import Frame, dense
+
+    R = jax.random.normal(jax.random.PRNGKey(1), (4, 3, 3))
+    xi = jax.random.normal(jax.random.PRNGKey(2), (4, 3))
+    ct = jax.random.normal(jax.random.PRNGKey(3), (4, 3, 3))
+    for left in (False, True):
+        want = dense(R, Frame(xi, left))
+        assert _rel(_engine._frame_dense(R, xi, left), want) < 1e-15
+        t_got = jax.linear_transpose(lambda x: _engine._frame_dense(R, x, left), xi)(ct)[0]
+        t_want = jax.linear_transpose(lambda x: dense(R, Frame(x, left)), xi)(ct)[0]
+        assert _rel(t_got, t_want) < 1e-14
+
+
 def test_one_pass_jacobian_through_gains_and_initial_rates(monkeypatch):
     """A few inputs (2 gains + 3 initial rates): value and derivatives from one pass.
 

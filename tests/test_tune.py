@@ -54,6 +54,20 @@ def test_rollout_cost_equals_tracking_cost_of_simulate():
     assert float(s.tracking_cost(traj, sc)) == pytest.approx(np.trapezoid(f, traj.t), rel=1e-12)
 
 
+def test_tracking_cost_of_a_batch_of_trajectories():
+    """Leading batch axes (the trapezoid rule's weights per run): each run's cost, and
+    ``vmap`` of the cost inside (where the runs share their times) the same."""
+    sc = with_gains(s.scenes.seed(), 3.0, 1.5)
+    R0, W0 = s.initial_states(jax.random.PRNGKey(4), 3)
+    run = lambda R, W: s.simulate(sc, s.RKMK4(), DT, 40, R0=R, Omega0=W)  # noqa: E731
+    trajs = jax.vmap(run)(R0, W0)
+    assert trajs.t.shape == (3, 41)
+    each = [float(s.tracking_cost(run(R0[i], W0[i]), sc)) for i in range(3)]
+    np.testing.assert_allclose(s.tracking_cost(trajs, sc), each, rtol=1e-13)
+    inside = jax.vmap(lambda R, W: s.tracking_cost(run(R, W), sc))(R0, W0)
+    np.testing.assert_allclose(inside, each, rtol=1e-13)
+
+
 @pytest.mark.parametrize("integrator", ["RKMK4", "ambient-rk4"])
 def test_gradient_matches_central_differences(integrator):
     """d cost / d (k_R, k_Omega, inertia) against central differences, float64, 1e-6 relative."""
