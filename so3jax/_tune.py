@@ -261,18 +261,30 @@ def tracking_cost(traj: Trajectory, scene, weights: CostWeights | None = None) -
             "scene must be the tracking scene the trajectory was run from (it needs a reference)"
         )
     weights = _check_weights(weights)
+    return _tracking_cost(traj, reference, weights)
+
+
+def _tracking_cost(traj: Trajectory, reference, weights, chunk_invariant: bool = False):
+    """`tracking_cost` after its checks (``chunk_invariant``: `_trapezoid`'s)."""
     Omega_d = _desired_rate(reference, traj.t)
     f = _integrand(weights, traj.R, traj.Omega, traj.Rd, traj.M, Omega_d)
-    return _trapezoid(f, traj.t)
+    return _trapezoid(f, traj.t, chunk_invariant)
 
 
-def _trapezoid(f, t):
+def _trapezoid(f, t, chunk_invariant: bool = False):
     """``int f dt`` over the last axis by the trapezoid rule, as a product with the
     rule's weights: XLA compiles a ``dot`` where a sum of ``f``'s neighbours became one
-    library reduction with everything that computes ``f`` (`_sum3`)."""
+    library reduction with everything that computes ``f`` (`_sum3`; the forward pass of
+    the mean cost of 16 seed runs of 1000 steps: 3.2 against 4.1 ms, S54).
+
+    A ``dot`` of a batch (``vmap`` of a run's cost) rounds differently for different
+    batch sizes; ``chunk_invariant`` sums the products instead, the same in every chunk
+    (`so3jax.sweep` gives chunked and whole sweeps bit for bit the same costs)."""
     dt = jnp.diff(t, axis=-1)
     zero = jnp.zeros_like(dt[..., :1])
     w = 0.5 * (jnp.concatenate([dt, zero], -1) + jnp.concatenate([zero, dt], -1))
+    if chunk_invariant:
+        return jnp.sum(f * w, axis=-1)
     if w.ndim == 1:
         return f @ w
     return jnp.einsum("...n,...n->...", f, w)
