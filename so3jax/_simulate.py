@@ -306,9 +306,8 @@ def _simulate(
 
     def observe(P, carry):
         sc, _, dt, t0 = unpack(P)
-        (groups, x), k, code = carry[:3]
-        obs = sc.observe(t0 + k * dt, join_groups(groups, x))
-        return jax.tree.map(lambda a: jnp.where(code == OK, a, jnp.nan), obs)
+        (groups, x), k = carry[:2]
+        return sc.observe(t0 + k * dt, join_groups(groups, x))
 
     start = split_groups(y0, R0)
     y0 = join_groups(*start)
@@ -326,5 +325,15 @@ def _simulate(
     # sweep's runs): a cost on the trajectory evaluates the reference once per time.
     k = save_every * jnp.arange(n_save + 1, dtype=i32)
     t = t0 + k * dt
-    obs = jax.tree.map(lambda a0, a: jnp.concatenate([a0[None], a]), obs0, obs)
+    # A point saved after the step that failed (index `bad`) is NaN. Masked here, not in
+    # the loop, the observations that are the same for every run of a batch (the
+    # reference attitude of a sweep) stay so in the loop: saved once, not once per run.
+    good = (code == OK) | (k[1:] <= bad)
+    obs = jax.tree.map(
+        lambda a0, a: jnp.concatenate(
+            [a0[None], jnp.where(good.reshape((-1,) + (1,) * (a.ndim - 1)), a, jnp.nan)]
+        ),
+        obs0,
+        obs,
+    )
     return _trajectory(t, obs, Status(code=code, step=bad), y)

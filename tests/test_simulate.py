@@ -333,6 +333,33 @@ def test_divergence_is_reported_with_the_step():
     assert not np.isfinite(W1).all() or not np.isfinite(np.asarray(so3jax.exp(BLOWUP_DT * W))).all()
 
 
+def test_divergent_tracking_run_masks_its_own_points_only():
+    """In a batch of tracking runs that share the reference, the one that blows up has
+    NaN for every observation (the reference attitude too) from the first point saved
+    after its failed step; the others equal their single runs."""
+    sc = so3jax.scenes.seed()
+    gains = jnp.array([[3.0, 1.5], [3.0, 1e5]])  # the second is far past the stable step
+
+    def run(k):
+        from so3jax._tune import with_gains
+
+        return so3jax.simulate(with_gains(sc, k[0], k[1]), so3jax.LieEuler(), 0.05, 60, 3)
+
+    batch = jax.vmap(run)(gains)
+    bad = int(batch.status.step[1])
+    assert int(batch.status.code[0]) == 0 and int(batch.status.code[1]) != 0
+    keep = 3 * np.arange(21) <= bad
+    assert keep.any() and not keep.all()
+    for f in ("R", "Rd", "Omega", "M"):
+        a = np.asarray(getattr(batch, f)[1])
+        finite = np.isfinite(a).reshape(len(keep), -1).all(axis=1)
+        np.testing.assert_array_equal(finite, keep, err_msg=f)
+        assert np.isnan(a[~keep]).all(), f
+        np.testing.assert_array_equal(getattr(batch, f)[0], getattr(run(gains[0]), f))
+    np.testing.assert_array_equal(batch.Rd[1][keep], batch.Rd[0][keep])
+    assert np.isfinite(np.asarray(batch.t)).all()
+
+
 def test_divergent_run_does_not_poison_the_batch():
     scales = np.array([1.0, 0.5, 40.0, 1.5])  # the third diverges at dt = 0.05
     Ws = scales[:, None] * OMEGA0
@@ -345,7 +372,11 @@ def test_divergent_run_does_not_poison_the_batch():
     codes = np.asarray(batch.status.code)
     np.testing.assert_array_equal(codes, [0, 0, 1, 0])
     np.testing.assert_array_equal(np.asarray(batch.status.step)[[0, 1, 3]], -1)
-    assert np.isnan(np.asarray(batch.R[2, -1])).all()
+    # a point is NaN exactly when it was saved after the failed step
+    saved_after = 4 * np.arange(n // 4 + 1)
+    finite = np.isfinite(np.asarray(batch.R[2])).all(axis=(1, 2))
+    np.testing.assert_array_equal(finite, saved_after <= int(batch.status.step[2]))
+    assert not finite[-1]
     for i in (0, 1, 3):
         single = run(Ws[i])
         assert np.isfinite(np.asarray(batch.R[i])).all()
