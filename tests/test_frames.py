@@ -192,7 +192,10 @@ def test_scalarized_jacobian_with_three_number_tangents(method, monkeypatch):
 
     def cost(program):
         def traj(tr):
-            return jnp.sum(tr.M**2) + jnp.sum(tr.extras["e_R"]) + jnp.sum(tr.y.R[0] ** 3)
+            # the saved attitudes too: their columns are three numbers, made dense after
+            # the loop (from nine, converted, where LGVI's step falls back)
+            saved = jnp.sum(jnp.sin(3.0 * tr.R)) + jnp.sum(tr.R * tr.Rd)
+            return jnp.sum(tr.M**2) + jnp.sum(tr.extras["e_R"]) + jnp.sum(tr.y.R[0] ** 3) + saved
 
         return _batched_seed_cost(method, jnp.float64, program, 19, traj)
 
@@ -263,7 +266,7 @@ def test_scalarized_jacobian_in_float32(monkeypatch):
 
     def cost(dtype, program):
         def traj(tr):
-            return jnp.sum(tr.M**2) + jnp.sum(tr.y.R[0] ** 3)
+            return jnp.sum(tr.M**2) + jnp.sum(tr.y.R[0] ** 3) + jnp.sum(jnp.sin(3.0 * tr.R))
 
         return _batched_seed_cost(s.LieEuler(), dtype, program, 30, traj)
 
