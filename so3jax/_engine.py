@@ -2378,6 +2378,12 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple,
     computed once for every basis vector; under ``grad`` JAX transposes the
     contraction. The same program runs scalarized under ``vmap`` of 16 runs or
     more (`BATCHED_LAYOUT`).
+
+    ``elements`` (`_tangent_masks`) and the frame rules decide, per observation, what
+    the loop saves (`_Loop.obs_kinds`): nothing where the tangent is zero (the
+    reference attitude of a gain's derivative), three numbers a column for a rotation.
+    A seed trajectory's columns shrank from 25 numbers a point to 15, and the gradient
+    of a cost on 16 saved runs of 4000 steps ran 42 against 64 ms (S54).
     """
     pf, cf = _floats(P), _floats(c0)
     cols = _unit_columns(lin)

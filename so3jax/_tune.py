@@ -139,10 +139,10 @@ def _sum3(x):
 
     On arrays of saved points (a cost on a trajectory), XLA's CPU compiler hands
     ``jnp.sum`` over an axis of three, with everything that feeds it, to a library
-    reduction (YNNPACK) that ran 3x-7x slower than the same sums as additions in one
-    elementwise loop (the forward-mode derivative of `tracking_cost` over 256 runs of
-    1000 steps: 10.3 against 1.5 ms, S54). In the scalarized loops both are the same
-    additions.
+    reduction (YNNPACK), slower than the same sums as additions in one elementwise loop:
+    the integrand on random arrays shaped as 256 runs of 1001 points (S54) took 4.8
+    against 1.2 ms, its ``jvp`` in two directions 6.0 against 1.6 ms and its gradient
+    10.9 against 4.4 ms. In the scalarized loops both are the same additions.
     """
     a, b, c = jnp.split(x, 3, axis=-1)  # (its transpose is one concatenation, where
     return (a + b + c)[..., 0]  # three slices transpose to three pads: 2.3x slower)
