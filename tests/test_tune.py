@@ -54,6 +54,24 @@ def test_rollout_cost_equals_tracking_cost_of_simulate():
     assert float(s.tracking_cost(traj, sc)) == pytest.approx(np.trapezoid(f, traj.t), rel=1e-12)
 
 
+def test_hessian_of_the_carried_sum_is_one_loop():
+    """`rollout_cost` adds whole trapezoids in its carry, so the cost is linear in the
+    final carry: ``jax.hessian`` needs the ``jvp`` of the Jacobian program and no value of
+    it beside (one loop in the lowered program, where the last point's integrand taken
+    after the loop made two), and it equals autodiff's."""
+    R0, W0 = s.initial_states(jax.random.PRNGKey(2), 16)
+
+    def cost(k, program="auto"):
+        sc = s.scenes.seed()
+        return s.expected_cost(sc, k[0], k[1], R0, W0, s.LieEuler(), DT, 20, program=program)
+
+    k = jnp.array([3.0, 1.5])
+    H = jax.jit(jax.hessian(cost))
+    assert H.lower(k).as_text().count("stablehlo.while") == 1
+    ref = jax.jit(jax.hessian(lambda k: cost(k, "autodiff")))(k)
+    np.testing.assert_allclose(H(k), ref, rtol=1e-10)
+
+
 def test_tracking_cost_of_a_batch_of_trajectories():
     """Leading batch axes (the trapezoid rule's weights per run): each run's cost, and
     ``vmap`` of the cost inside (where the runs share their times) the same."""
