@@ -1674,46 +1674,47 @@ class _Loop:
     # tangent can be nonzero (`_tangent_masks`). Every other leaf is held at its
     # primal value, so no operation pays for a tangent that is known to be zero.
 
-    def _tstep(self, mP, mc, x):
-        P, c, dP, dc = x
+    @staticmethod
+    def _masked(fn, mP, mc, P, c):
+        """``(g, Pm, cm)``: ``fn(P, c)`` as ``g(Pm, cm)``, a function of the float leaves of
+        ``P`` and ``c`` flagged in ``mP`` and ``mc`` (the others held at ``P`` and ``c``),
+        and those leaves."""
         pf, cf = _floats(P), _floats(c)
 
         def g(Pm, cm):
-            Pp = _with_floats(P, _fill(mP, Pm, pf))
-            c1 = self.step(Pp, _with_floats(c, _fill(mc, cm, cf)))
+            return fn(_with_floats(P, _fill(mP, Pm, pf)), _with_floats(c, _fill(mc, cm, cf)))
+
+        return g, _pick(mP, pf), _pick(mc, cf)
+
+    def _tstep(self, mP, mc, x):
+        P, c, dP, dc = x
+
+        def step(P, c):
+            c1 = self.step(P, c)
             return _pick(mc, _floats(c1)), c1
 
+        g, Pm, cm = self._masked(step, mP, mc, P, c)
         fr = _frame_flags(mc)
         if any(fr):
-            dc1, c1 = _frame_step(g, _pick(mP, pf), _pick(mc, cf), dP, dc, fr)
+            dc1, c1 = _frame_step(g, Pm, cm, dP, dc, fr)
             return P, c1, dP, dc1
-        _, dc1, c1 = jax.jvp(g, (_pick(mP, pf), _pick(mc, cf)), (list(dP), list(dc)), has_aux=True)
+        _, dc1, c1 = jax.jvp(g, (Pm, cm), (list(dP), list(dc)), has_aux=True)
         return P, c1, dP, dc1
 
     def _tobs(self, mP, mc, x):
         P, c, dP, dc = x
-        pf, cf = _floats(P), _floats(c)
-
-        def o(Pm, cm):
-            Pp = _with_floats(P, _fill(mP, Pm, pf))
-            return self.observe(Pp, _with_floats(c, _fill(mc, cm, cf)))
-
+        o, Pm, cm = self._masked(self.observe, mP, mc, P, c)
         fr = _frame_flags(mc)
         if any(fr):
-            return _frame_observe(o, _pick(mP, pf), _pick(mc, cf), dP, dc, fr)
-        return jax.jvp(o, (_pick(mP, pf), _pick(mc, cf)), (list(dP), list(dc)))[1]
+            return _frame_observe(o, Pm, cm, dP, dc, fr)
+        return jax.jvp(o, (Pm, cm), (list(dP), list(dc)))[1]
 
     def _obs_tangents(self, mP, mc, x) -> tuple[list, list]:
         """The observations after a state and their tangents as `frame_jvp` gives them
         (``None``, an array or a `Frame`), as flat lists."""
         P, c, dP, dc = x
-        pf, cf = _floats(P), _floats(c)
-
-        def o(Pm, cm):
-            Pp = _with_floats(P, _fill(mP, Pm, pf))
-            return self.observe(Pp, _with_floats(c, _fill(mc, cm, cf)))
-
-        outs, touts, _ = _jvp_with_frames(o, _pick(mP, pf), _pick(mc, cf), dP, dc, _frame_flags(mc))
+        o, Pm, cm = self._masked(self.observe, mP, mc, P, c)
+        outs, touts, _ = _jvp_with_frames(o, Pm, cm, dP, dc, _frame_flags(mc))
         return outs, touts
 
     def obs_kinds(self, mP, mc, P, c0, elements: list) -> tuple:

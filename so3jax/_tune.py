@@ -285,8 +285,6 @@ def _trapezoid(f, t, chunk_invariant: bool = False):
     w = 0.5 * (jnp.concatenate([dt, zero], -1) + jnp.concatenate([zero, dt], -1))
     if chunk_invariant:
         return jnp.sum(f * w, axis=-1)
-    if w.ndim == 1:
-        return f @ w
     return jnp.einsum("...n,...n->...", f, w)
 
 
