@@ -2406,8 +2406,8 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple,
     J_it = iter(Jys)
     dys = []
     for y, kind in zip(jax.tree.leaves(ys), mo, strict=True):
-        if kind == OBS_ZERO:
-            dys.append(jnp.zeros_like(y))
+        if kind == OBS_ZERO:  # symbolic: no zeros are made, batched or masked downstream
+            dys.append(SymbolicZero(jax.typeof(y).to_tangent_aval()))
             continue
         J = next(J_it)
         d = jnp.tensordot(coef.astype(J.dtype), J, axes=([0], [1]))

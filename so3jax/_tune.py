@@ -148,12 +148,24 @@ def _sum3(x):
     return (a + b + c)[..., 0]  # three slices transpose to three pads: 2.3x slower)
 
 
+def _dot3(x, y):
+    """``sum(x * y, -1)`` over a last axis of three, as a sum of its components' products.
+
+    `_sum3` of ``x * y`` reads each product three times, so XLA's CPU compiler stores the
+    products first: an array the size of the saved attitudes. Summed products are one
+    elementwise loop. A cost on 16 saved runs of 4000 steps needed 13.6 against 16.6 MiB
+    of temp memory (forward pass) and 29.7 against 32.3 MiB (its gradient), S55."""
+    x0, x1, x2 = jnp.split(x, 3, axis=-1)
+    y0, y1, y2 = jnp.split(y, 3, axis=-1)
+    return (x0 * y0 + x1 * y1 + x2 * y2)[..., 0]
+
+
 def _integrand_errors(R, Omega, Rd, Omega_d):
     """``(Psi, a, e_Omega)`` with ``a = R^T Rd Omega_d``."""
-    psi = 0.5 * (3.0 - _sum3(_sum3(Rd * R)))
+    psi = 0.5 * (3.0 - _sum3(_dot3(Rd, R)))
     # e_Omega = Omega - R^T Rd Omega_d (Lee, Leok & McClamroch 2010, eq. (11)).
-    b = _sum3(Rd * Omega_d[..., None, :])  # Rd Omega_d
-    a = _sum3(jnp.swapaxes(R, -1, -2) * b[..., None, :])  # R^T b
+    b = _dot3(Rd, Omega_d[..., None, :])  # Rd Omega_d
+    a = _dot3(jnp.swapaxes(R, -1, -2), b[..., None, :])  # R^T b
     return psi, a, Omega - a
 
 
