@@ -61,7 +61,7 @@ from ._engine import sweep_chunk, sweep_scalarize
 from ._integrators import RKMK4, AbstractLieSolver
 from ._quadrotor import Quadrotor, _restart, position_metrics
 from ._simulate import simulate, simulate_from
-from ._so3 import random_rotation
+from ._so3 import _attitude_error_function, random_rotation
 from ._stability import SAFETY, stable_dt
 from ._sweep_params import apply_params, check_params, draw, prepare_scene, split_params
 from ._trajectory import OK, _check_int, settling_time
@@ -477,7 +477,7 @@ def _run_metrics(
     # The start goes in apart from the scene's attitudes, so the runs share Rd.
     sc, R0 = with_start(with_gains(sc, k_R, k_O), R0, W0)
     traj = simulate_from(sc, R0, method, dt, n_steps, save_every, scalarize)
-    psi = 0.5 * (3.0 - jnp.sum(traj.Rd * traj.R, axis=(-1, -2)))
+    psi = _attitude_error_function(traj.R, traj.Rd)
     t_settle = settling_time(traj.t, psi < threshold)
     # (summed the same in every chunk: a chunked sweep equals a whole one bit for bit)
     cost = _tracking_cost(traj, sc.reference, weights, chunk_invariant=True)  # (checked)
