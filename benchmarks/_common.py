@@ -148,7 +148,16 @@ def environment() -> dict:
         "platform": platform.platform(),
         "x64": bool(jax.config.jax_enable_x64),
         "peak_rss_mb": peak_rss_mb(),
+        "allocator": allocator(),
     }
+
+
+def allocator() -> dict:
+    """The allocator settings in this process's environment (glibc's ``MALLOC_*`` and
+    ``GLIBC_TUNABLES``, a preloaded allocator): they change the time of calls whose XLA
+    buffers exceed glibc's mmap threshold (`allocator.py`)."""
+    names = ("GLIBC_TUNABLES", "LD_PRELOAD")
+    return {k: v for k, v in sorted(os.environ.items()) if k.startswith("MALLOC_") or k in names}
 
 
 def peak_rss_mb() -> float:

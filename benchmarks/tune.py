@@ -107,14 +107,14 @@ def trajectory_cost(scene, k, R0, W0, method, n, program="auto"):
     return jnp.mean(jax.vmap(one)(R0, W0))
 
 
-def measure(fn, arg, repeats):
+def measure(fn, arg, repeats, min_seconds=0.5):
     t = time.perf_counter()
     compiled = jax.jit(fn).lower(arg).compile()
     compile_s = time.perf_counter() - t
     jax.block_until_ready(compiled(arg))
     times = []
-    # at least `repeats` calls and half a second (a few ms a call: 3 minima were noisy)
-    while len(times) < repeats or (sum(times) < 0.5 and len(times) < 50):
+    # at least `repeats` calls and `min_seconds` (a few ms a call: 3 minima were noisy)
+    while len(times) < repeats or (sum(times) < min_seconds and len(times) < 50):
         t = time.perf_counter()
         jax.block_until_ready(compiled(arg))
         times.append(time.perf_counter() - t)

@@ -186,3 +186,20 @@ def test_startup_quick(tmp_path):
     assert (row["entry"], row["code"]) == ("scenes.seed()", "current")
     assert 1 <= row["compiles"] <= 4, row
     assert row["cold_s"] > 0 and row["warm_s"] > 0 and row["import_s"] > 0
+
+
+def test_allocator_quick(tmp_path):
+    """Each setting's child process sees its own allocator variables, and the ratios are
+    taken within a setting (derivative / forward pass) and across (kept / defaults)."""
+    res = _run("allocator.py", tmp_path)
+    kept = res["settings"]["buffers kept"]
+    assert kept["MALLOC_ARENA_MAX"] == "1" and res["settings"]["glibc defaults"] == {}
+    rows = {(r["setting"], r["derivative"]): r for r in res["rows"]}
+    assert set(rows) == {(s, d) for s in res["settings"] for d in ("forward", "grad")}
+    for (setting, derivative), r in rows.items():
+        assert r["seen"] == (kept if setting == "buffers kept" else {}), r["seen"]
+        assert r["seconds"] > 0 and r["temp_bytes"] > 0
+        fwd = rows[(setting, "forward")]["seconds"]
+        assert r["forward_ratio"] == pytest.approx(r["seconds"] / fwd)
+        base = rows[("glibc defaults", derivative)]["seconds"]
+        assert r["time_ratio"] == pytest.approx(r["seconds"] / base)
