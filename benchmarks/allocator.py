@@ -41,6 +41,7 @@ Writes ``results/allocator[-quick].json`` and ``.png``.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -50,7 +51,8 @@ import time
 import _common as C
 import matplotlib.pyplot as plt
 
-#: The two environments: variables set on top of this process's environment.
+#: The two environments: the variables each child gets on top of this process's
+#: environment, from which every allocator variable (`_common.allocator`) is dropped.
 SETTINGS = {
     "glibc defaults": {},
     "buffers kept": {
@@ -159,7 +161,8 @@ def label(r: dict) -> str:
 
 
 def figure(rows: list[dict]):
-    """Each program's fastest call under both settings, and the derivatives' ratios."""
+    """Each program's fastest call under both settings, and the derivatives' ratios to
+    the forward pass (the forward passes, the baselines, are left blank)."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
     names = list(dict.fromkeys(label(r) for r in rows))
     width = 0.8 / len(SETTINGS)
@@ -186,7 +189,7 @@ def figure(rows: list[dict]):
 def main():
     def extra(p):
         p.add_argument("--rounds", type=int, default=None, help="default 2 (--quick: 1)")
-        p.add_argument("--child", action="store_true", help=__import__("argparse").SUPPRESS)
+        p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
         p.add_argument(
             "--min-seconds", type=float, default=None, help="least time per row (default 0.5 s)"
         )
