@@ -16,6 +16,16 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
+from ._cli_inertia import (
+    add_inertia_option,
+    checked_inertia,
+    describe_inertia,
+    inertia_matrix,
+    scene_inertia,
+    with_inertia,
+)
 from ._integrators import METHODS, method_by_name
 
 #: Scenes accepted by --scene: (description, default duration in seconds).
@@ -97,7 +107,10 @@ def build_parser() -> argparse.ArgumentParser:
             "||R - Rd|| / (2 sqrt 2), |e_Omega|, torques, orthogonality error, body axes "
             "on the sphere) to an output folder."
         ),
-        epilog=f"scenes:\n{scenes}\n\nexample: python -m so3jax --scene near-pi --method CG3",
+        epilog=(
+            f"scenes:\n{scenes}\n\nexamples:\n  python -m so3jax --scene near-pi --method CG3\n"
+            "  python -m so3jax --inertia 0.082 0.0845 0.1377   (or 9 numbers: the matrix)"
+        ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(
@@ -140,6 +153,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=Path("so3jax-output"),
         help="output folder, created if needed (default: so3jax-output/)",
     )
+    add_inertia_option(
+        parser,
+        "it replaces the rigid body's (the vehicle's for a quadrotor; dzhanibekov needs "
+        "J1 < J2 < J3, suslov starts near the new J's steady rotation)",
+    )
     parser.add_argument(
         "--float32", action="store_true", help="simulate in float32 (default: float64)"
     )
@@ -148,60 +166,103 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _make_scene(name: str, dtype):
+def _make_scene(name: str, dtype, inertia=None):
+    """The scene ``name`` in ``dtype``, with the body inertia ``inertia`` if given.
+
+    ``inertia`` (3 moments or a `(3, 3)` matrix, checked by `check_inertia` and
+    `_scene_inertia_error`) rebuilds the scene by its constructor (`with_inertia`);
+    dzhanibekov and suslov, whose initial rate is set from ``J``, are built with it.
+    """
     import jax.numpy as jnp
 
     from . import scenes
     from ._so3 import from_euler_zyx
 
-    if name == "seed":
-        return scenes.seed(dtype)
-    if name == "near-pi":
-        return scenes.near_pi(dtype=dtype)
-    if name == "unwinding":
-        return scenes.unwinding(hysteresis=False, dtype=dtype)
-    if name == "hysteresis":
-        return scenes.unwinding(hysteresis=True, dtype=dtype)
     if name == "dzhanibekov":
-        return scenes.dzhanibekov(dtype=dtype)
+        if inertia is None:
+            return scenes.dzhanibekov(dtype=dtype)
+        return scenes.dzhanibekov(np.diag(inertia_matrix(inertia)), dtype=dtype)
+    if name == "suslov":
+        return _suslov_scene(dtype, inertia)
     if name == "free-body":
         pi = jnp.asarray(math.pi, dtype)
+        J = scenes.SEED_INERTIA if inertia is None else inertia
         return scenes.free_body(
-            jnp.asarray(scenes.SEED_INERTIA, dtype),
+            jnp.asarray(J, dtype),
             from_euler_zyx(pi / 3, -pi / 4, pi / 6),
             jnp.asarray([2.0, 5.0, -1.0], dtype),
         )
-    if name == "suslov":
-        return _suslov_scene(dtype)
-    if name == "quadrotor-circle":
-        return scenes.quadrotor_circle(_QUADROTOR_DT, dtype=dtype)
-    if name == "quadrotor-recovery":
-        return scenes.quadrotor_recovery(_QUADROTOR_DT, dtype=dtype)
-    if name == "quadrotor-flip":
-        return scenes.quadrotor_flip(_QUADROTOR_DT, dtype=dtype)
-    raise AssertionError(name)
+    if name == "seed":
+        scene = scenes.seed(dtype)
+    elif name == "near-pi":
+        scene = scenes.near_pi(dtype=dtype)
+    elif name == "unwinding":
+        scene = scenes.unwinding(hysteresis=False, dtype=dtype)
+    elif name == "hysteresis":
+        scene = scenes.unwinding(hysteresis=True, dtype=dtype)
+    elif name == "quadrotor-circle":
+        scene = scenes.quadrotor_circle(_QUADROTOR_DT, dtype=dtype)
+    elif name == "quadrotor-recovery":
+        scene = scenes.quadrotor_recovery(_QUADROTOR_DT, dtype=dtype)
+    elif name == "quadrotor-flip":
+        scene = scenes.quadrotor_flip(_QUADROTOR_DT, dtype=dtype)
+    else:
+        raise AssertionError(name)
+    return scene if inertia is None else with_inertia(scene, inertia)
 
 
-def _suslov_scene(dtype):
-    """Suslov's body, J = diag(1, 2, 3), a = (1, 0.6, 0.3) (no principal axis).
+#: The suslov scene's constraint vector (normalised): no principal axis of diag(1, 2, 3).
+_SUSLOV_A = (1.0, 0.6, 0.3)
+
+
+def _suslov_axes(J):
+    """``(a, w)``: the unit constraint vector and the unit steady-rotation axis ``a x J a``.
+
+    ``w`` is ``None`` where ``a`` is a principal axis of ``J`` (``J a`` parallel to ``a``).
+    """
+    a = np.asarray(_SUSLOV_A) / np.linalg.norm(_SUSLOV_A)
+    w = np.cross(a, J @ a)
+    n = np.linalg.norm(w)
+    return a, (w / n if n > 1e-9 * np.linalg.norm(J @ a) else None)
+
+
+def _suslov_scene(dtype, inertia=None):
+    """Suslov's body, J = diag(1, 2, 3) (or ``inertia``), a = (1, 0.6, 0.3) (no principal axis).
 
     It starts 0.3 rad (in the constraint plane) from the repelling steady rotation
     ``-Omega*`` (``Omega*`` spans ``a^perp ∩ (J a)^perp``) at 1.5 rad/s, and turns
     over to ``+Omega*``.
     """
     import jax.numpy as jnp
-    import numpy as np
 
     from . import scenes
 
-    J = np.diag([1.0, 2.0, 3.0])
-    a = np.array([1.0, 0.6, 0.3]) / np.linalg.norm([1.0, 0.6, 0.3])
-    w = np.cross(a, J @ a)
-    w /= np.linalg.norm(w)
+    J = np.diag([1.0, 2.0, 3.0]) if inertia is None else inertia_matrix(inertia)
+    a, w = _suslov_axes(J)
     Omega0 = 1.5 * (-np.cos(0.3) * w + np.sin(0.3) * np.cross(a, w))
     return scenes.suslov(
         jnp.asarray(J, dtype), jnp.asarray(a, dtype), jnp.eye(3, dtype=dtype), Omega0
     )
+
+
+def _scene_inertia_error(name: str, inertia) -> str | None:
+    """Why scene ``name`` cannot take ``--inertia`` (checked by `check_inertia`), or ``None``."""
+    J = inertia_matrix(inertia)
+    if name == "dzhanibekov":
+        d = np.diag(J)
+        if np.any(J != np.diag(d)) or not d[0] < d[1] < d[2]:
+            return (
+                "scene dzhanibekov spins about e2, the intermediate principal axis: give 3 "
+                "principal moments J1 < J2 < J3 (or a diagonal matrix of them), got "
+                f"{describe_inertia(inertia)}"
+            )
+    if name == "suslov" and _suslov_axes(J)[1] is None:
+        a = ", ".join(f"{x:g}" for x in _SUSLOV_A)
+        return (
+            f"scene suslov's constraint vector a = ({a}) / |a| is a principal axis of "
+            f"{describe_inertia(inertia)}: no steady rotation to start near (take unequal moments)"
+        )
+    return None
 
 
 def _plan(n_steps: int, save_every: int, n_chunks: int = 20) -> list[int]:
@@ -291,7 +352,8 @@ def summarize(traj, scene) -> dict:
         "max_orthogonality_error": float(np.sqrt(np.sum(E * E, axis=(-1, -2))).max()),
     }
     if traj.Rd is not None:
-        psi = error_function(R, np.asarray(traj.Rd, dtype=np.float64))
+        # Psi >= 0: a round-off below zero is shown as 0 (display only).
+        psi = np.maximum(error_function(R, np.asarray(traj.Rd, dtype=np.float64)), 0.0)
         M = np.linalg.norm(np.asarray(traj.M, dtype=np.float64), axis=-1)
         out["Psi_initial"] = float(psi[0])
         out["Psi_final"] = float(psi[ok][-1])
@@ -300,7 +362,8 @@ def summarize(traj, scene) -> dict:
         out["max_abs_M"] = float(np.nanmax(M))
     elif "e_x" in traj.extras:  # a quadrotor
         e_x = np.linalg.norm(np.asarray(traj.extras["e_x"], dtype=np.float64), axis=-1)[ok]
-        psi = np.asarray(traj.extras["Psi"], dtype=np.float64)[ok]
+        # The trace formula's round-off can make Psi slightly negative: shown as 0.
+        psi = np.maximum(np.asarray(traj.extras["Psi"], dtype=np.float64)[ok], 0.0)
         out["rms_position_error"] = float(np.sqrt(np.mean(e_x**2)))
         out["max_position_error"] = float(e_x.max())
         out["final_position_error"] = float(e_x[-1])
@@ -372,6 +435,10 @@ def main(argv=None) -> int:
             f"LGVI needs a state (R, Omega) alone; scene {args.scene!r} also carries the "
             "controller's memory (use RKMK4, CG3, CF4, ...)"
         )
+    if args.inertia is not None:
+        why = _scene_inertia_error(args.scene, args.inertia)
+        if why:
+            parser.error(f"argument --inertia: {why}")
     wall0 = time.perf_counter()
 
     import jax
@@ -381,7 +448,9 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
 
     dtype = jnp.float32 if args.float32 else jnp.float64
-    scene = _make_scene(args.scene, dtype)
+    with checked_inertia():
+        scene = _make_scene(args.scene, dtype, args.inertia)
+    inertia = scene_inertia(scene)
     method = METHODS[args.method]()
 
     duration = SCENES[args.scene][1] if args.duration is None else args.duration
@@ -399,6 +468,8 @@ def main(argv=None) -> int:
         f"{n_steps} steps ({n_steps * args.dt:g} s), saving every {save_every}, "
         f"{jnp.dtype(dtype).name}"
     )
+    source = "--inertia" if args.inertia is not None else "the scene's"
+    print(f"inertia ({source}): {describe_inertia(inertia)}")
     print("compiling and simulating ...", flush=True)
     traj, first_s, rest_s = run_chunked(
         scene, method, args.dt, n_steps, save_every, progress=not args.no_progress
@@ -441,6 +512,8 @@ def main(argv=None) -> int:
         n_steps=n_steps,
         save_every=save_every,
         dtype=jnp.dtype(dtype).name,
+        inertia=np.asarray(inertia, np.float64).tolist(),
+        inertia_from_option=args.inertia is not None,
         compile_and_first_chunk_s=first_s,
         wall_s=time.perf_counter() - wall0,
         figures=files,
@@ -449,9 +522,10 @@ def main(argv=None) -> int:
         json.dump(summary, f, indent=2)
 
     print("summary:")
-    keys = [k for k in summary if k not in ("figures", "scene", "method", "dt", "n_steps")]
-    for k in keys:
-        print(f"  {k:<28} {_fmt(summary[k])}")
+    skip = ("figures", "scene", "method", "dt", "n_steps", "inertia_from_option")
+    for k in (k for k in summary if k not in skip):
+        v = describe_inertia(inertia) if k == "inertia" else _fmt(summary[k])
+        print(f"  {k:<28} {v}")
     print(f"output folder: {out.resolve()}")
     for f in files:
         print(f"  {f}")

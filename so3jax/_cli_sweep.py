@@ -1,6 +1,7 @@
 """Command line for sweeps and tuning: ``python -m so3jax sweep|tune [options]``.
 
-Both commands run the seed scenario (`scenes.seed`) with defaults that finish
+Both commands run the seed scenario (`scenes.seed`; ``--inertia`` rebuilds it with
+another body inertia, `with_inertia`) with defaults that finish
 in about a minute on a laptop CPU, write their results and figures to an
 output folder and print where. float64 runs turn on JAX's x64 mode inside the
 command only (`jax.enable_x64` as a context), never globally.
@@ -20,6 +21,8 @@ import math
 import sys
 import time
 from pathlib import Path
+
+from ._cli_inertia import add_inertia_option, checked_inertia, scene_inertia, with_inertia
 
 #: Scenes `sweep` runs from the command line.
 #: (A sweep replaces the initial attitude: quadrotor-recovery is hover at the origin.)
@@ -92,7 +95,7 @@ def sweep_parser() -> argparse.ArgumentParser:
             "Monte Carlo sweep of the geometric controller on the seed scenario (or a "
             "quadrotor, --scene): a log grid of (k_R, k_Omega) crossed with random initial "
             "attitudes. Writes results.npz, summary.json and PNG figures to --out; rerun with "
-            "the same options to resume."
+            "the same options to resume. --inertia gives the body (or vehicle) another inertia."
         ),
     )
     p.add_argument(
@@ -144,6 +147,11 @@ def sweep_parser() -> argparse.ArgumentParser:
         nargs="+",
         help="factors on the reference rate to sweep",
     )
+    add_inertia_option(
+        p,
+        "it replaces the seed's rigid body's or the quadrotor's; --inertia-scale and "
+        "--inertia-scale-axes scale it",
+    )
     p.add_argument("--threshold", type=_positive(float), default=0.01, help="settling Psi")
     p.add_argument(
         "--position-threshold",
@@ -188,7 +196,7 @@ def tune_parser() -> argparse.ArgumentParser:
         description=(
             "Gradient-based tuning of (k_R, k_Omega) on the seed scenario (Adam in log-gains) "
             "over a batch of initial attitudes (the seed's and random ones). Writes tune.json "
-            "and tune.png to --out."
+            "and tune.png to --out. --inertia gives the body another inertia."
         ),
     )
     p.add_argument("--kR0", type=_positive(float), default=1.0, help="initial k_R")
@@ -197,6 +205,7 @@ def tune_parser() -> argparse.ArgumentParser:
     p.add_argument("--iters", type=int, default=100, help="optimiser steps")
     p.add_argument("--lr", type=_positive(float), default=0.1, help="Adam step in log-gain")
     p.add_argument("--per-axis", action="store_true", help="tune one gain per body axis")
+    add_inertia_option(p, "it replaces the seed's rigid body's")
     p.add_argument(
         "--gradient",
         choices=("auto", "reverse", "forward"),
@@ -289,6 +298,9 @@ def sweep_main(argv=None) -> int:
                 "quadrotor-circle": scenes.quadrotor_circle,
             }[args.scene]
             scene = make(control_period=args.dt, dtype=args.dtype)
+        if args.inertia is not None:
+            with checked_inertia():
+                scene = with_inertia(scene, args.inertia)
         k_R = np.geomspace(*args.kR_range, args.n_kR)
         k_O = np.geomspace(*args.kOmega_range, args.n_kOmega)
         t = time.perf_counter()
@@ -319,6 +331,7 @@ def sweep_main(argv=None) -> int:
     summary = result.summary()
     summary.update(
         scene=args.scene,
+        inertia=scene_inertia(scene).astype(float).tolist(),
         seconds=seconds,
         runs_per_second=summary["n_runs"] / seconds,
         dtype=args.dtype,
@@ -371,6 +384,9 @@ def tune_main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     with jax.enable_x64(args.dtype == "float64"):
         scene = scenes.seed(dtype=args.dtype)
+        if args.inertia is not None:
+            with checked_inertia():
+                scene = with_inertia(scene, args.inertia)
         dtype = scene.y0.R.dtype
         # The seed's own initial attitude first, then random ones.
         R_rand, _ = initial_states(jax.random.key(args.seed), args.n_attitudes - 1, dtype=dtype)
@@ -407,6 +423,7 @@ def tune_main(argv=None) -> int:
         "gradient": _resolve_gradient(args.gradient, (result.gains.k_R, result.gains.k_Omega)),
         "n_attitudes": args.n_attitudes,
         "horizon": n_steps * args.dt,
+        "inertia": scene_inertia(scene).astype(float).tolist(),
     }
     (out / "tune.json").write_text(json.dumps(report, indent=2) + "\n")
     fig = plots.tune_figure(result, before, after)

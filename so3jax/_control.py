@@ -31,6 +31,7 @@ from jax.custom_derivatives import SymbolicZero
 
 from ._dynamics import RigidBody
 from ._frames import Frame, dense, frame_rule, right_or_zero
+from ._repr import module_repr
 from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _prep, _to_quat, _vee
 from ._types import Array, ArrayLike, Rot, Scalar, Vec3
 
@@ -44,7 +45,12 @@ def _check_gain(value, name: str) -> Array:
     if k.shape not in ((), (3,)):
         raise ValueError(
             f"{name} must be a scalar or a 3-vector (one gain per body axis), got shape "
-            f"{k.shape}; to batch gains, vmap the constructor: jax.vmap({name.split('.')[0]})(...)"
+            f"{k.shape}"
+            + (
+                f"; to batch gains, vmap the constructor: jax.vmap({name.split('.')[0]})(...)"
+                if "." in name
+                else "; to run a batch of gains, vmap over them"
+            )
         )
     if _is_concrete(k):
         kn = np.asarray(k, dtype=np.float64)
@@ -74,6 +80,8 @@ class GeometricGains(eqx.Module):
 
     k_R: Array
     k_Omega: Array
+
+    __repr__ = module_repr
 
     def __init__(self, k_R: ArrayLike, k_Omega: ArrayLike):
         self.k_R = _check_gain(k_R, "GeometricGains.k_R")
@@ -575,3 +583,77 @@ class ConingRate(AbstractReference):
         w = jnp.stack([a * c, a * s, spin], -1)
         dw = jnp.stack([-a * nu * s, a * nu * c, jnp.zeros_like(c)], -1)
         return w, dw
+
+
+def _scalar_param(value, name: str, positive: bool = False) -> Array:
+    v = _as_float(value)
+    if v.shape != ():
+        raise ValueError(f"{name} must be a scalar, got shape {v.shape}")
+    if _is_concrete(v):
+        x = float(np.asarray(v, np.float64))
+        if not math.isfinite(x) or (positive and x <= 0):
+            want = "positive and finite" if positive else "finite"
+            raise ValueError(f"{name} must be {want}, got {x}")
+    return v
+
+
+class SlewReference(AbstractReference):
+    """A rest-to-rest slew about a fixed body axis: ``Rd0 -> Rd0 exp(angle hat(n))``.
+
+    With ``n = axis / |axis|``, ``tau = t / T`` (``T`` the duration) and the
+    degree-7 profile ``s(tau) = 35 tau^4 - 84 tau^5 + 70 tau^6 - 20 tau^7``
+    (``s(0) = 0``, ``s(1) = 1``; its first three derivatives vanish at both ends):
+
+    ``Omega_d(t) = angle s'(t) n`` with ``s'(t) = 140 tau^3 (1 - tau)^3 / T``,
+    ``dOmega_d(t) = angle s''(t) n`` with
+    ``s''(t) = 420 tau^2 (1 - tau)^2 (1 - 2 tau) / T^2``,
+
+    on ``0 <= t <= T``, and ``Omega_d = dOmega_d = 0`` before and after (hold).
+    Rate, acceleration and jerk are zero at both ends, so ``Omega_d`` and
+    ``dOmega_d`` are continuous in ``t`` (and so is the feedforward torque and
+    its derivative). Every ``Omega_d(t)`` is parallel to ``n``, so the
+    reference attitude (``Rd' = Rd hat(Omega_d)``) has the closed form
+    ``Rd(t) = Rd0 exp(angle s(t) hat(n))``: it turns by ``angle`` about the
+    body axis ``n`` and holds ``Rd0 exp(angle hat(n))`` from ``t = T`` on.
+
+    **Arguments:**
+
+    - `axis`: the axis of the slew in the reference's body frame, a nonzero
+      3-vector (normalised here).
+    - `angle`: the slew angle in rad (any finite value; negative turns the
+      other way, more than ``pi`` goes the long way round).
+    - `duration`: ``T`` in s (positive, finite).
+
+    Arguments are checked when their values are concrete (``ValueError``
+    naming the argument); the fields are arrays, so `jax.vmap` and `jax.grad`
+    over ``angle`` and ``duration`` work.
+
+    References: L. Biagiotti, C. Melchiorri, "Trajectory Planning for Automatic
+    Machines and Robots", Springer 2008 (the degree-7 polynomial profile).
+    """
+
+    axis: Array
+    angle: Array
+    duration: Array
+
+    def __init__(self, axis: ArrayLike, angle: ArrayLike, duration: ArrayLike):
+        n = _vec_param(axis, "axis", allow_scalar=False)
+        if _is_concrete(n):
+            nn = np.asarray(n, np.float64)
+            norm = float(np.linalg.norm(nn))
+            if not norm > 0:
+                raise ValueError(f"axis must be a nonzero 3-vector, got {nn}")
+            self.axis = jax.device_put(np.asarray(nn / norm, n.dtype))
+        else:
+            self.axis = n / jnp.sqrt(_dot(n, n))[..., None]
+        self.angle = _scalar_param(angle, "angle")
+        self.duration = _scalar_param(duration, "duration", positive=True)
+
+    def __call__(self, t):
+        t = jnp.asarray(t)
+        T = self.duration
+        tau = jnp.clip(t / T, 0.0, 1.0)  # the polynomials vanish at both ends: hold
+        u = tau * (1.0 - tau)
+        ds = 140.0 * u**3 / T
+        dds = 420.0 * u**2 * (1.0 - 2.0 * tau) / T**2
+        return (self.angle * ds)[..., None] * self.axis, (self.angle * dds)[..., None] * self.axis

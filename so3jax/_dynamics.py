@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._repr import module_repr
 from ._so3 import _as_float, _cross, _dot, _is_concrete, _mv
 from ._types import ArrayLike, Mat3, Rot, Scalar, Vec3
 
@@ -31,6 +32,8 @@ class RigidBody(eqx.Module):
 
     inertia: Mat3
     inertia_inv: Mat3
+
+    __repr__ = module_repr
 
     def __init__(self, inertia: ArrayLike):
         J = _as_float(inertia)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._plot_log import log_floor, log_line
+
 _AXIS_COLORS = ("tab:red", "tab:green", "tab:blue")
 
 
@@ -33,7 +35,8 @@ def quadrotor_figure(traj, title: str | None = None):
 
     Position against the desired one (altitude as ``-x_3``), the position error
     ``|e_x|``, the attitude error ``Psi = 1/2 tr(I - Rc^T R)``
-    against the commanded attitude ``Rc`` (log scale), and the thrust ``f`` with
+    against the commanded attitude ``Rc`` (log scale, from machine epsilon: the
+    trace formula's round-off, which can make ``Psi`` slightly negative), and the thrust ``f`` with
     the moments ``M``. Lee's model has no thrust limits: upside down, the
     commanded thrust is negative.
 
@@ -60,7 +63,8 @@ def quadrotor_figure(traj, title: str | None = None):
     ax[0, 1].plot(t, np.linalg.norm(e_x, axis=-1))
     ax[0, 1].set_title(r"position error $|e_x|$")
     ax[0, 1].set_ylabel("m")
-    ax[1, 0].semilogy(t, np.maximum(psi, 1e-300))
+    # Psi from the trace formula: absolute round-off eps (a value < 0 shows at the floor).
+    log_line(ax[1, 0], t, psi, floor=log_floor(np.asarray(traj.extras["Psi"]).dtype))
     ax[1, 0].set_title(r"attitude error $\Psi = \frac{1}{2}\,tr(I - R_c^T R)$")
     ax[1, 1].plot(t, f, color="k", label="thrust f [N]")
     ax[1, 1].set_ylabel("N")

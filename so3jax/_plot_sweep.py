@@ -8,9 +8,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._plot_log import log_floor, log_line
 from ._sweep import _nan_reduce
 
 __all__ = ["sweep_heatmaps", "settling_distribution", "worst_attitudes", "tune_figure"]
+
+#: Legend entries of the two classes of cells without a median settling time.
+UNSETTLED_LABEL = "median not settled (half or more of the runs)"
+FAILED_LABEL = "every run failed (diverged or unresolved)"
 
 
 def _grid_axes(result):
@@ -22,16 +27,19 @@ def _grid_axes(result):
 def sweep_heatmaps(result):
     """Heat maps over ``(k_R, k_Omega)``: settling time, failures, and the stable step.
 
-    Left: median settling time; cells whose runs all failed (diverged or
-    unresolved) are grey, a cell whose median is ``inf`` (fewer than half the
-    runs settled) is drawn at the top of the scale. Middle: the fraction of runs
-    that did not settle; cells marked ``x`` hold runs whose closed loop
-    diverged, ``o`` runs that failed only numerically (resolved at a smaller
-    step), ``?`` unresolved runs. Right: the largest step known to be stable for
-    each cell (`so3jax.stable_dt`), with the cells past the sweep's ``dt``
-    outlined: there the runs were re-run at smaller steps. A quadrotor sweep
-    with sampled control has no step limit: its right panel is the median
-    final position error instead.
+    Left: median settling time. Two kinds of cells have no median time and are
+    drawn as their own classes, outside the colour scale, each with a legend
+    entry: cells whose median is ``inf`` (half or more of the runs with
+    statistics did not settle within the horizon; this includes cells where no
+    run settled) are white with hatching, and cells whose runs all failed
+    (diverged or unresolved) are grey. Middle: the fraction of runs that did not
+    settle for any reason (`SweepResult.not_settled_fraction`); cells marked
+    ``x`` hold runs whose closed loop diverged, ``o`` runs that failed only
+    numerically (resolved at a smaller step), ``?`` unresolved runs. Right: the
+    largest step known to be stable for each cell (`so3jax.stable_dt`), with the
+    cells past the sweep's ``dt`` outlined: there the runs were re-run at smaller
+    steps. A quadrotor sweep with sampled control has no step limit: its right
+    panel is the median final position error instead.
 
     **Arguments:**
 
@@ -40,13 +48,15 @@ def sweep_heatmaps(result):
     **Returns:** a `Figure` with three panels.
     """
     import matplotlib.pyplot as plt
-    from matplotlib.colors import LogNorm
+    from matplotlib.colors import ListedColormap, LogNorm
+    from matplotlib.patches import Patch
 
     kR, kO = _grid_axes(result)
     med = result.as_grid(result.median_settling_time)
-    fail = result.as_grid(result.failure_fraction)
+    fail = result.as_grid(result.not_settled_fraction)
     horizon = result.dt * result.n_steps
-    med_shown = np.where(np.isinf(med), horizon, med)
+    unsettled = np.isinf(med)  # its own class below, not the top of the colour scale
+    med_shown = np.where(unsettled, np.nan, med)
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6), constrained_layout=True)
     stable = result.as_grid(result.stable_dt)
     finite = np.isfinite(stable)
@@ -72,6 +82,19 @@ def sweep_heatmaps(result):
         ax.set_xlabel("k_Omega")
         ax.set_ylabel("k_R")
         ax.set_title(title, fontsize=10)
+    hatch = dict(facecolor="white", hatch="//", edgecolor="0.35")
+    if unsettled.any():
+        # pcolor (a PolyCollection) draws hatching and only the cells not masked.
+        axes[0].pcolor(
+            _edges(kO),
+            _edges(kR),
+            np.ma.masked_where(~unsettled, np.zeros(unsettled.shape)),
+            cmap=ListedColormap([hatch["facecolor"]]),
+            hatch=hatch["hatch"],
+            edgecolor=hatch["edgecolor"],
+            linewidth=0.0,
+            label=UNSETTLED_LABEL,
+        )
     KO, KR = np.meshgrid(kO, kR)
     marks = (
         (result.diverged, "x", "r", "closed loop diverged"),
@@ -106,7 +129,13 @@ def sweep_heatmaps(result):
     b = result.best()
     for ax in axes[:2]:
         ax.plot(result.k_Omega[b], result.k_R[b], "w*", ms=12, mec="k", label="lowest mean cost")
-    axes[0].legend(loc="lower right", fontsize=8)
+    handles, labels = axes[0].get_legend_handles_labels()
+    if unsettled.any():  # the legend draws a collection by its colour map: a patch shows the hatch
+        handles[labels.index(UNSETTLED_LABEL)] = Patch(**hatch, label=UNSETTLED_LABEL)
+    if np.isnan(med).any():
+        handles.append(Patch(facecolor="0.75", label=FAILED_LABEL))
+        labels.append(FAILED_LABEL)
+    axes[0].legend(handles, labels, loc="lower right", fontsize=8)
     axes[1].legend(loc="upper left", fontsize=7)
     n = result.R0.shape[0]
     c = result.outcome_counts()
@@ -282,8 +311,9 @@ def tune_figure(result, before=None, after=None):
             if traj is None:
                 continue
             R, Rd = np.asarray(traj.R), np.asarray(traj.Rd)
+            # The trace formula: absolute round-off eps, so Psi < eps shows at the floor.
             psi = 0.5 * (3.0 - np.sum(Rd * R, axis=(-1, -2)))
-            axes[2].semilogy(np.asarray(traj.t), np.maximum(psi, 1e-16), label=label)
+            log_line(axes[2], np.asarray(traj.t), psi, floor=log_floor(R.dtype), label=label)
         axes[2].set_xlabel("t (s)")
         axes[2].set_ylabel("Psi")
         axes[2].set_title("attitude error", fontsize=10)

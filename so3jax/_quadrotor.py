@@ -43,10 +43,12 @@ import numpy as np
 
 from ._control import _check_gain, _geometric_torque
 from ._dynamics import RigidBody
+from ._repr import module_repr
 from ._scene import Scene, check_rotation
 from ._scenes import _as_body, _cast_floats, _check_reference
 from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _to_dtype, _vee
 from ._state import LieState, LieTangent
+from ._trajectory import COMMAND_UNDEFINED, OK
 from ._types import Array, ArrayLike
 
 #: Vehicle and gains of DiffTune's quadrotor example (Cheng et al., T-RO 2024),
@@ -54,6 +56,9 @@ from ._types import Array, ArrayLike
 DIFFTUNE_MASS = 4.34
 DIFFTUNE_INERTIA = (0.0820, 0.0845, 0.1377)
 DIFFTUNE_GAINS = (16.0, 5.6, 8.81, 2.54)  # k_x, k_v, k_R, k_Omega (each per axis)
+#: Gains of Lee, Leok & McClamroch's numerical example (CDC 2010): ``k_x = 16 m``,
+#: ``k_v = 5.6 m`` (``m = 4.34`` kg: 69.44 and 24.304), ``k_R = 8.81``, ``k_Omega = 2.54``.
+PAPER_GAINS = (16.0 * DIFFTUNE_MASS, 5.6 * DIFFTUNE_MASS, 8.81, 2.54)
 #: Initial attitude of the paper's recovery case (nearly upside down: 178 degrees about e1).
 RECOVERY_R0 = ((1.0, 0.0, 0.0), (0.0, -0.9995, -0.0314), (0.0, 0.0314, -0.9995))
 
@@ -90,6 +95,8 @@ class QuadrotorGains(eqx.Module):
     k_R: Array
     k_Omega: Array
 
+    __repr__ = module_repr
+
     def __init__(self, k_x: ArrayLike, k_v: ArrayLike, k_R: ArrayLike, k_Omega: ArrayLike):
         self.k_x = _check_gain(k_x, "QuadrotorGains.k_x")
         self.k_v = _check_gain(k_v, "QuadrotorGains.k_v")
@@ -110,6 +117,8 @@ class QuadrotorVehicle(eqx.Module):
     mass: Array
     body: RigidBody
     g: Array
+
+    __repr__ = module_repr
 
 
 def _check_scalar(value, name: str, positive: bool) -> Array:
@@ -173,15 +182,19 @@ def _time_derivatives(fn, t, order: int):
     return g(t)
 
 
-def _unit_2(a, a1, a2):
+def _unit_2(a, a1, a2, floor2=None):
     """``u = a/|a|`` and its first two time derivatives from those of ``a``.
 
     With ``n = |a|``: ``n' = u . a'``, ``u' = (a' - u n') / n``,
     ``n'' = u' . a' + u . a''``, ``u'' = (a'' - 2 u' n' - u n'') / n``.
+    Where ``|a|^2`` is below ``floor2`` (default: the dtype's smallest normal
+    number) the direction is undefined and ``u`` and its derivatives are NaN, so
+    the run's status reports it (`Status`, code 20) instead of going on with a
+    zero vector.
     """
     n2 = _dot(a, a)
-    small = n2 < jnp.finfo(a.dtype).tiny
-    inv = jnp.where(small, 0.0, 1.0 / jnp.sqrt(jnp.where(small, 1.0, n2)))[..., None]
+    small = n2 < (jnp.finfo(a.dtype).tiny if floor2 is None else floor2)
+    inv = jnp.where(small, jnp.nan, 1.0 / jnp.sqrt(jnp.where(small, 1.0, n2)))[..., None]
     u = a * inv
     n1 = _dot(u, a1)[..., None]
     u1 = (a1 - u * n1) * inv
@@ -201,7 +214,9 @@ def _commanded_attitude(A, A1, A2, b, b1, b2):
     c = _cross(b3, b)
     c1 = _cross(b3_1, b) + _cross(b3, b1)
     c2 = _cross(b3_2, b) + 2.0 * _cross(b3_1, b1) + _cross(b3, b2)
-    b2c, b2c_1, b2c_2 = _unit_2(c, c1, c2)
+    # b1_d parallel to b3c (to a few ulps): b2c is undefined, and so is Rc.
+    floor2 = (16 * jnp.finfo(c.dtype).eps) ** 2 * _dot(b, b)
+    b2c, b2c_1, b2c_2 = _unit_2(c, c1, c2, floor2)
     b1c = _cross(b2c, b3)
     b1c_1 = _cross(b2c_1, b3) + _cross(b2c, b3_1)
     b1c_2 = _cross(b2c_2, b3) + 2.0 * _cross(b2c_1, b3_1) + _cross(b2c, b3_2)
@@ -543,6 +558,15 @@ class Quadrotor(Scene):
         Omega, x, v = y.x[..., 0:3], y.x[..., 3:6], y.x[..., 6:9]
         return quadrotor_control(self.gains, self.vehicle, t, x, v, R, Omega, self.reference)
 
+    def fault(self, t, y):
+        """`COMMAND_UNDEFINED` where the commanded attitude at ``(t, y)`` is undefined.
+
+        ``Rc`` needs a thrust direction ``b3c`` and a heading ``b1_d`` not parallel
+        to it; where either fails, `_commanded_attitude` gives NaN.
+        """
+        Rc = self.control(t, y).Rc
+        return jnp.where(jnp.isnan(Rc).any((-2, -1)), COMMAND_UNDEFINED, OK)
+
     def _applied(self, t, y):
         if self.sampled:
             return y.x[..., 9], y.x[..., 10:13]
@@ -772,19 +796,41 @@ def quadrotor_circle(
     )
 
 
-def quadrotor_recovery(control_period=None, dtype=None) -> Quadrotor:
+def quadrotor_recovery(
+    control_period=None, dtype=None, *, gains: QuadrotorGains | None = None
+) -> Quadrotor:
     """The paper's recovery: hover at the origin from a nearly upside-down start.
 
-    ``R0 = [[1, 0, 0], [0, -0.9995, -0.0314], [0, 0.0314, -0.9995]]`` (178.2
-    degrees about ``e1``, ``Psi(R0, I) = 1.9995``), at rest at the origin, with
-    ``x_d = 0`` and ``b1_d = e1`` (Lee, Leok & McClamroch, CDC 2010, second
-    case); DiffTune's vehicle and gains. The paper's matrix is not exactly
-    orthogonal (``0.9995^2 + 0.0314^2 = 1 - 1.4e-7``); we take its nearest rotation.
+    The second case of the numerical example of Lee, Leok & McClamroch (CDC
+    2010): their vehicle (``m = 4.34`` kg, ``J = diag(0.0820, 0.0845, 0.1377)``
+    kg m^2) and their gains ``k_x = 16 m = 69.44``, ``k_v = 5.6 m = 24.304``,
+    ``k_R = 8.81``, ``k_Omega = 2.54`` on every axis (DiffTune's ``k_x = 16``,
+    ``k_v = 5.6`` are those of `quadrotor_circle`), at rest at the origin with
+    ``R0 = [[1, 0, 0], [0, -0.9995, -0.0314], [0, 0.0314, -0.9995]]``,
+    ``x_d = 0`` and ``b1_d = e1``. The paper's matrix is not exactly orthogonal
+    (``0.9995^2 + 0.0314^2 = 1 - 1.4e-5``); we take its nearest rotation,
+    ``178.2`` degrees about ``e1``, where
+    ``Psi(R0, I) = 1 + 0.9995 / sqrt(0.9995^2 + 0.0314^2) = 1.99951``.
+
+    **Arguments:**
+
+    - `control_period`: ``T`` in s for sampled-and-held control, or ``None``
+      (continuous control, as in the paper).
+    - `dtype`: float dtype.
+    - `gains`: other `QuadrotorGains` (default: the paper's, on every axis).
+
+    **Returns:** a `Quadrotor` scene.
+
+    References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control
+    of a quadrotor UAV on SE(3)", CDC 2010 (numerical example, the case
+    starting upside down).
     """
     from ._so3 import project
 
     dtype = _float_dtype(dtype)
-    J, gains = _difftune_vehicle_gains(dtype)
+    J = np.asarray(DIFFTUNE_INERTIA, dtype)
+    if gains is None:
+        gains = QuadrotorGains(*(np.full(3, k, dtype) for k in PAPER_GAINS))
     R0 = project(np.asarray(RECOVERY_R0, dtype))
     return quadrotor(
         np.asarray(DIFFTUNE_MASS, dtype),

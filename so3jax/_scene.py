@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._dynamics import RigidBody
+from ._repr import module_repr
 from ._so3 import _is_concrete, _prep
 from ._state import LieState, LieTangent
 from ._types import Array
@@ -34,6 +35,9 @@ class Scene(eqx.Module):
 
     y0: eqx.AbstractVar[LieState]
     time_driven_groups: ClassVar[tuple[int, ...]] = ()
+
+    # Small concrete leaves (gains, inertia, reference parameters) print by value.
+    __repr__ = module_repr
 
     @abc.abstractmethod
     def vector_field(self, t: Array, y: LieState) -> LieTangent:
@@ -59,6 +63,16 @@ class Scene(eqx.Module):
         default; a tracking scene re-initialises its controller's memory.
         """
         return self
+
+    def fault(self, t: Array, y: LieState) -> Array | None:
+        """Why a step from ``(t, y)`` fails, as a `Status` code (0: no cause known here).
+
+        `simulate` asks once per run, after the loop, at the last good state of a
+        run that stopped being finite, to name a cause the scene can tell (the
+        quadrotor: a commanded attitude that is undefined). ``None`` (the default):
+        the scene knows no causes, and the run's code stays "not finite".
+        """
+        return None
 
     def for_step(self, dt: Array, t0: Array) -> Scene:
         """The scene to integrate with fixed steps of ``dt`` from ``t0`` (itself by default).
@@ -118,6 +132,18 @@ class MechanicalScene(Scene):
         return {"R": y.R[..., 0, :, :], "Omega": y.x[..., :3]}
 
 
+def rotation_tolerance(dtype) -> float:
+    """The largest ``||R^T R - I||_F`` an initial attitude of ``dtype`` may have."""
+    return 1e-5 if jnp.finfo(dtype).bits < 64 else 1e-8
+
+
+def not_rotation(R: Array) -> Array:
+    """Traced: ``R`` (shape `(..., 3, 3)`) is not a rotation (`rotation_tolerance`)."""
+    E = jnp.swapaxes(R, -1, -2) @ R - jnp.eye(3, dtype=R.dtype)
+    err2 = jnp.sum(E * E, axis=(-2, -1))
+    return ~(err2 <= rotation_tolerance(R.dtype) ** 2) | ~(jnp.linalg.det(R) > 0)
+
+
 def check_rotation(R, name: str) -> Array:
     """Validate an initial attitude: shape (3, 3), finite, on SO(3) (eager only)."""
     R = _prep(R, name, (3, 3))
@@ -128,8 +154,7 @@ def check_rotation(R, name: str) -> Array:
         Rn = np.asarray(R, dtype=np.float64)
         err = float(np.linalg.norm(Rn.T @ Rn - np.eye(3)))
         det = float(np.linalg.det(Rn))
-        tol = 1e-5 if jnp.finfo(R.dtype).bits < 64 else 1e-8
-        if err > tol or det <= 0:
+        if err > rotation_tolerance(R.dtype) or det <= 0:
             raise ValueError(
                 f"{name} is not a rotation (||R^T R - I|| = {err:.3g}, det = {det:.3g}); "
                 "use so3jax.project(R) to get the nearest rotation"

@@ -9,11 +9,16 @@ import jax.numpy as jnp
 from ._adaptive import simulate_adaptive
 from ._engine import run
 from ._integrators import AbstractLieSolver
-from ._scene import Scene, check_rotation, check_vector
+from ._scene import Scene, check_rotation, check_vector, not_rotation
 from ._so3 import _to_dtype
 from ._state import LieState, all_finite
 from ._trajectory import (
+    BAD_DT,
+    BAD_R0,
+    BAD_RD0,
     NONFINITE,
+    NONFINITE_PARAMETER,
+    NONFINITE_START,
     OK,
     SOLVER_FAILED,
     Status,
@@ -312,14 +317,18 @@ def _simulate(
     start = split_groups(y0, R0)
     y0 = join_groups(*start)
     i32 = jnp.int32
-    init = (start, jnp.array(0, i32), jnp.array(OK, i32), jnp.array(-1, i32))
+    code0 = input_code(scene, dt, y0)
+    init = (start, jnp.array(0, i32), code0, jnp.array(-1, i32))
     if compensated:
         init = init + (jnp.zeros_like(y0.R),)
     obs, ((groups, x), _, code, bad, *_) = run(
         step, observe, params, init, n_save * save_every, save_every, program=program
     )
     y = join_groups(groups, x)
-    obs0 = scene.observe(t0, y0)
+    code = diagnose(scene, code, t0 + jnp.maximum(bad, 0) * dt, y)
+    started = code0 == OK
+    obs0 = _nan_unless(started, scene.observe(t0, y0))
+    y = _nan_unless(started, y)
     # The saved times are the step counter's, ``t0 + k dt`` as the step has them. Computed
     # here, not saved by the loop, they stay unbatched where ``t0`` and ``dt`` are (a
     # sweep's runs): a cost on the trajectory evaluates the reference once per time.
@@ -336,4 +345,52 @@ def _simulate(
         obs0,
         obs,
     )
-    return _trajectory(t, obs, Status(code=code, step=bad), y)
+    t_bad = jnp.where(bad >= 0, t0 + bad * dt, jnp.nan)
+    return _trajectory(t, obs, Status(code=code, step=bad, t=t_bad), y)
+
+
+def input_code(scene, dt, y0: LieState) -> Array:
+    """The `Status` code of a run's input, checked in the traced program (0: good).
+
+    Eagerly, bad values raise a `ValueError` before tracing; under `jit` / `vmap`
+    a run with bad input starts with this code, so its state stays frozen and its
+    saved points are NaN, while the other runs of a batch go on untouched. In
+    order: ``dt`` not positive and finite, a non-finite initial state, a body
+    attitude or a reference attitude that is not a rotation, a non-finite
+    parameter of the scene (gains, inertia, reference).
+    """
+    params = jax.tree.leaves(
+        eqx.filter(eqx.tree_at(lambda s: s.y0, scene, None), eqx.is_inexact_array)
+    )
+    params_finite = (
+        jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in params])) if params else True
+    )
+    not_rot = not_rotation(y0.R)
+    checks = [
+        (~(jnp.isfinite(dt) & (dt > 0)), BAD_DT),
+        (~all_finite(y0), NONFINITE_START),
+        (not_rot[0], BAD_R0),
+        (jnp.any(not_rot[1:]), BAD_RD0),
+        (~params_finite, NONFINITE_PARAMETER),
+    ]
+    code = jnp.array(OK, jnp.int32)
+    for bad, value in reversed(checks):  # the first that holds wins
+        code = jnp.where(bad, jnp.int32(value), code)
+    return code
+
+
+def diagnose(scene, code: Array, t: Array, y: LieState) -> Array:
+    """``code``, with "not finite" replaced by the cause `Scene.fault` names at ``(t, y)``.
+
+    ``y`` is the last good state (the start, for a run whose input was not finite).
+    Evaluated once per run, after the loop: the loop itself is unchanged.
+    """
+    if type(scene).fault is Scene.fault:
+        return code
+    cause = scene.fault(t, y)
+    return jnp.where(((code == NONFINITE) | (code == NONFINITE_START)) & (cause != OK), cause, code)
+
+
+def _nan_unless(keep: Array, tree):
+    """``tree`` where ``keep``, NaN elsewhere (float leaves)."""
+    return jax.tree.map(lambda a: jnp.where(keep, a, jnp.nan), tree)

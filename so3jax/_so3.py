@@ -1119,25 +1119,37 @@ def _to_euler_zyx(R: Array) -> tuple[Array, Array, Array]:
     return phi, theta, psi
 
 
-def is_gimbal_locked(R: Rot, atol: float = 1e-6) -> Array:
-    """Whether ``R`` is within ``atol`` of ZYX gimbal lock (``|cos theta| <= atol``).
+def is_gimbal_locked(R: Rot, atol: float = 1e-6, *, seq: str = "ZYX") -> Array:
+    """Whether ``R`` is within ``atol`` of gimbal lock for the Euler sequence ``seq``.
 
-    There ``det E = -cos(theta)`` vanishes (see `euler_zyx_rate_matrix`) and the
-    Euler angle rates are undefined.
+    For the default ZYX angles this is ``|cos theta| <= atol``: there
+    ``det E = -cos(theta)`` vanishes (see `euler_zyx_rate_matrix`) and the Euler
+    angle rates are undefined. For any ``seq`` (see `from_euler`) the test is on the
+    second angle ``beta``: ``|cos beta| <= atol`` for Tait–Bryan sequences (``beta =
+    +-pi/2``), ``|sin beta| <= atol`` for proper Euler ones (``beta = 0`` or ``pi``).
+    There only the sum or the difference of the first and third angles is determined
+    (see `to_euler`).
 
     **Arguments:**
 
     - `R`: rotation matrix, shape `(..., 3, 3)`.
-    - `atol`: tolerance on ``|cos theta|``.
+    - `atol`: tolerance on ``|cos beta|`` (Tait–Bryan) or ``|sin beta|`` (proper Euler).
+    - `seq`: the Euler sequence, written as for `from_euler`.
 
     **Returns:** boolean array, shape `(...)`.
     """
-    return _is_gimbal_locked(_prep(R, "R", (3, 3)), atol)
+    axes, _ = _check_seq(seq)
+    return _is_gimbal_locked(_prep(R, "R", (3, 3)), atol, axes)
 
 
-@jax.jit
-def _is_gimbal_locked(R: Array, atol) -> Array:
-    return R[..., 0, 0] ** 2 + R[..., 1, 0] ** 2 <= atol**2
+@functools.partial(jax.jit, static_argnums=2)
+def _is_gimbal_locked(R: Array, atol, axes: tuple[int, int, int]) -> Array:
+    # With R = R_I(a1) R_J(beta) R_K(a3), column K of R is R_I(a1) R_J(beta) e_K: its
+    # component along e_I is +-sin(beta) (Tait–Bryan) or cos(beta) (proper Euler, K = I),
+    # so its other two components have the squared norm cos^2 beta or sin^2 beta.
+    first, _, third = axes
+    rows = [r for r in range(3) if r != first]
+    return R[..., rows[0], third] ** 2 + R[..., rows[1], third] ** 2 <= atol**2
 
 
 def euler_zyx_rate_matrix(phi: Scalar, theta: Scalar, psi: Scalar) -> Mat3:
@@ -1168,6 +1180,172 @@ def _euler_zyx_rate_matrix(phi: Array, theta: Array, psi: Array) -> Array:
         ],
         -2,
     )
+
+
+# Euler angles for any of the 24 conventions, written as SciPy's `Rotation.from_euler`
+# writes them.
+
+_EULER_SEQ_HELP = (
+    "seq must be three axes from 'xyz' (extrinsic) or from 'XYZ' (intrinsic), all in one "
+    "case, with no axis twice in a row (e.g. 'ZYX', 'xyz', 'ZXZ')"
+)
+
+#: Gimbal lock, exactly: `to_euler` sets the undetermined half-angle (as SciPy does) once
+#: the pair of quaternion components that defines it is below this many machine epsilons
+#: relative to the other pair. That changes the rebuilt rotation by about as much, so round
+#: trips stay at round-off; at a lock built in floating point the ratio is about one epsilon.
+_EULER_LOCK_ULPS = 8.0
+
+
+def _check_seq(seq) -> tuple[tuple[int, int, int], bool]:
+    """Validate an Euler sequence; return its intrinsic axes and whether it is extrinsic.
+
+    The intrinsic axes ``(I, J, K)`` give ``R = R_I(a) R_J(b) R_K(c)`` for the angles
+    in that order; an extrinsic ``seq`` 'ijk' with angles ``(a, b, c)`` is the
+    intrinsic 'KJI' with angles ``(c, b, a)``.
+    """
+    ok = (
+        isinstance(seq, str)
+        and len(seq) == 3
+        and (seq.isupper() or seq.islower())
+        and set(seq.lower()) <= set("xyz")
+        and seq[0].lower() != seq[1].lower() != seq[2].lower()
+    )
+    if not ok:
+        raise ValueError(f"{_EULER_SEQ_HELP}; got seq={seq!r}")
+    axes = tuple("xyz".index(c) for c in seq.lower())
+    extrinsic = seq.islower()
+    return (axes[::-1] if extrinsic else axes), extrinsic
+
+
+def _axis_rotation(axis: int, c: Array, s: Array) -> Array:
+    """Rotation by the angle with cosine ``c`` and sine ``s`` about the basis axis ``axis``."""
+    p, q = (axis + 1) % 3, (axis + 2) % 3
+    z, o = jnp.zeros_like(c), jnp.ones_like(c)
+    M = [[z, z, z], [z, z, z], [z, z, z]]
+    M[axis][axis] = o
+    M[p][p], M[p][q] = c, -s
+    M[q][p], M[q][q] = s, c
+    return jnp.stack([jnp.stack(row, -1) for row in M], -2)
+
+
+def from_euler(seq: str, angles: Vec3) -> Rot:
+    """Rotation from Euler angles in any of the 24 conventions, as SciPy writes them.
+
+    Uppercase ``seq`` is intrinsic (rotations about the moving axes):
+    ``from_euler('ZYX', (a, b, c)) = Rz(a) Ry(b) Rx(c)``, which is
+    `from_euler_zyx`. Lowercase is extrinsic (about the fixed axes):
+    ``from_euler('xyz', (a, b, c)) = Rz(c) Ry(b) Rx(a)``. The 12 sequences are
+    the 6 Tait–Bryan ones (three different axes, e.g. 'XYZ') and the 6 proper
+    Euler ones (first axis repeated, e.g. 'ZXZ'). The same as
+    ``scipy.spatial.transform.Rotation.from_euler(seq, angles).as_matrix()``.
+
+    **Arguments:**
+
+    - `seq`: three letters from ``xyz`` (extrinsic) or ``XYZ`` (intrinsic), no axis
+      twice in a row; anything else is a ``ValueError``. A Python string: under ``jit``
+      close over it (``functools.partial(from_euler, seq)``).
+    - `angles`: angles in radians, in the order of ``seq``, shape `(..., 3)`.
+
+    **Returns:** rotation matrix, shape `(..., 3, 3)`.
+    """
+    axes, extrinsic = _check_seq(seq)
+    return _from_euler(axes, extrinsic, _prep(angles, "angles", (3,)))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _from_euler(axes: tuple[int, int, int], extrinsic: bool, angles: Array) -> Array:
+    if extrinsic:
+        angles = angles[..., ::-1]
+    c, s = jnp.cos(angles), jnp.sin(angles)
+    R1, R2, R3 = (_axis_rotation(ax, c[..., n], s[..., n]) for n, ax in enumerate(axes))
+    return _mm(_mm(R1, R2), R3)
+
+
+def to_euler(seq: str, R: Rot) -> Vec3:
+    """Euler angles of a rotation in any of the 24 conventions, as SciPy returns them.
+
+    Inverse of `from_euler`, with SciPy's ranges: the first and third angles in
+    ``[-pi, pi)``, the second in ``[-pi/2, pi/2]`` for Tait–Bryan sequences and
+    ``[0, pi]`` for proper Euler ones. At gimbal lock (the second angle at
+    ``+-pi/2``, respectively ``0`` or ``pi``; flag it with
+    ``is_gimbal_locked(R, seq=seq)``) only the sum or the difference of the first
+    and third angles is determined; then, as in
+    ``scipy.spatial.transform.Rotation.as_euler`` (which also warns), the third
+    angle is set to 0. Close to (but not at) gimbal lock the first and third angles
+    are ill-conditioned, yet the returned angles rebuild ``R`` to round-off.
+
+    The angles come from the quaternion of ``R`` (`to_quat`) by the direct method of
+    Bernardes and Viollet: the middle angle is ``2 atan2(|(c, d)|, |(a, b)|)`` (less
+    ``pi/2`` for Tait–Bryan sequences) and the half-sum and half-difference of the
+    others are ``atan2(b, a)`` and ``atan2(d, c)``, with ``(a, b, c, d)`` linear in the
+    quaternion. Each ``atan2`` and norm is guarded at the lock, so that values and
+    gradients stay finite there (the angles are not differentiable at the lock itself).
+
+    **Arguments:**
+
+    - `seq`: the Euler sequence, a Python string written as for `from_euler`.
+    - `R`: rotation matrix, shape `(..., 3, 3)`.
+
+    **Returns:** angles in radians, in the order of ``seq``, shape `(..., 3)`.
+
+    References: E. Bernardes and S. Viollet, "Quaternion to Euler angles conversion: A
+    direct, general and computationally efficient method", PLoS ONE 17(11): e0276302, 2022.
+    """
+    axes, extrinsic = _check_seq(seq)
+    return _to_euler(axes, extrinsic, _prep(R, "R", (3, 3)))
+
+
+def _safe_norm(n2: Array) -> Array:
+    """``sqrt(n2)`` with a finite (zero) gradient at ``n2 = 0``."""
+    pos = n2 > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, n2, 1.0)), 0.0)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _to_euler(axes: tuple[int, int, int], extrinsic: bool, R: Array) -> Array:
+    # Bernardes & Viollet (2022) work in the extrinsic order:
+    # R = R_k(gamma) R_j(beta) R_i(alpha).
+    i, j, k = axes[::-1]
+    q = _to_quat(R)
+    proper = i == k
+    if proper:
+        k = 3 - i - j
+    sign = 1.0 if (j - i) % 3 == 1 else -1.0  # parity of the permutation (i, j, k)
+    w, qi, qj, qk = q[..., 0], q[..., 1 + i], q[..., 1 + j], sign * q[..., 1 + k]
+    # Proper Euler angles (k = the remaining axis), with c = cos(beta/2), s = sin(beta/2):
+    # q = c cos(u) + c sin(u) e_i + s cos(v) e_j + sign s sin(v) e_k,
+    # u = (gamma + alpha)/2, v = (gamma - alpha)/2. A Tait–Bryan sequence becomes the proper
+    # (i, j, i) after a quarter turn about e_j, q -> (1 + e_j) q / sqrt(2): beta moves by
+    # pi/2 and gamma is multiplied by the parity.
+    if proper:
+        a, b, c, d = w, qi, qj, qk
+    else:
+        a, b, c, d = w - qj, qi + qk, qj + w, qk - qi
+    ab2, cd2 = a * a + b * b, c * c + d * d
+    tol2 = (_EULER_LOCK_ULPS * jnp.finfo(R.dtype).eps) ** 2
+    lock0 = cd2 <= tol2 * ab2  # middle angle 0: only the half-sum is defined
+    lockpi = ab2 <= tol2 * cd2  # middle angle pi: only the half-difference is defined
+    beta = 2.0 * jnp.arctan2(_safe_norm(cd2), _safe_norm(ab2))
+    half_sum = jnp.arctan2(jnp.where(lockpi, 0.0, b), jnp.where(lockpi, 1.0, a))
+    half_diff = jnp.arctan2(jnp.where(lock0, 0.0, d), jnp.where(lock0, 1.0, c))
+    # At lock the third angle of seq is 0: gamma for extrinsic sequences, alpha for intrinsic.
+    sgn = -1.0 if extrinsic else 1.0
+    half_diff = jnp.where(lock0, sgn * half_sum, half_diff)
+    half_sum = jnp.where(lockpi, sgn * half_diff, half_sum)
+    alpha, gamma = half_sum - half_diff, half_sum + half_diff
+    if not proper:
+        beta = beta - 0.5 * jnp.pi
+        gamma = sign * gamma
+    alpha, gamma = _wrap_angle(alpha), _wrap_angle(gamma)
+    out = (alpha, beta, gamma) if extrinsic else (gamma, beta, alpha)
+    return jnp.stack(out, -1)
+
+
+def _wrap_angle(x: Array) -> Array:
+    """``x`` in ``(-3 pi, 3 pi)`` wrapped to ``[-pi, pi)`` (SciPy's range)."""
+    two_pi = 2 * jnp.pi
+    return jnp.where(x >= jnp.pi, x - two_pi, jnp.where(x < -jnp.pi, x + two_pi, x))
 
 
 # --------------------------------------------------------------------------

@@ -37,6 +37,7 @@ import functools
 
 import numpy as np
 
+from ._dynamics import RigidBody
 from ._integrators import LGVI, RKMK, AbstractLieSolver, CommutatorFree
 
 #: Interval of absolute stability on the negative real axis, ``|P(-s)| <= 1`` for
@@ -157,6 +158,19 @@ def closed_loop_eigenvalues(inertia, k_R, k_Omega) -> np.ndarray:
     return np.linalg.eigvals(A)
 
 
+def _gain_batch(k, name: str) -> np.ndarray:
+    """Gain sets of shape `(G,)` or `(G, 3)` (a scalar is one set), finite."""
+    k = np.atleast_1d(np.asarray(k, float))
+    if k.ndim > 2 or (k.ndim == 2 and k.shape[1] != 3):
+        raise ValueError(
+            f"{name} must have shape (G,) or (G, 3) (G gain sets, scalar or per axis), "
+            f"got {k.shape}"
+        )
+    if not np.all(np.isfinite(k)):
+        raise ValueError(f"{name} must be finite, got {k}")
+    return k
+
+
 def stable_dt(method: AbstractLieSolver, inertia, k_R, k_Omega, safety: float = SAFETY):
     """Largest step the method takes stably under the geometric controller, per gain pair.
 
@@ -178,8 +192,14 @@ def stable_dt(method: AbstractLieSolver, inertia, k_R, k_Omega, safety: float = 
     """
     if not (0 < safety <= 1):
         raise ValueError(f"safety must be in (0, 1], got {safety}")
-    k_R = np.atleast_1d(np.asarray(k_R, float))
-    k_O = np.atleast_1d(np.asarray(k_Omega, float))
+    k_R, k_O = _gain_batch(k_R, "k_R"), _gain_batch(k_Omega, "k_Omega")
+    if k_R.shape[0] != k_O.shape[0]:
+        raise ValueError(
+            f"k_R and k_Omega must hold the same number of gain sets, got {k_R.shape[0]} "
+            f"and {k_O.shape[0]}"
+        )
+    # A ValueError naming the inertia if it is not one.
+    inertia = np.asarray(RigidBody(inertia).inertia, float)
     G = k_R.shape[0]
     if isinstance(method, LGVI):
         J = np.asarray(inertia, float)

@@ -221,9 +221,23 @@ class SweepResult:
         )
 
     @property
-    def failure_fraction(self) -> np.ndarray:
-        """Fraction of runs per gain pair that did not settle (for any reason), shape `(G,)`."""
+    def not_settled_fraction(self) -> np.ndarray:
+        """Fraction of runs per gain pair that did not settle, for any reason, shape `(G,)`.
+
+        ``1 - settled.mean(axis=1)``: a run counts whether it stayed finite and did
+        not settle within the horizon, diverged, or stayed unresolved (`not_settled`
+        marks only the first kind).
+        """
         return 1.0 - self.settled.mean(axis=1)
+
+    @property
+    def failure_fraction(self) -> np.ndarray:
+        """Alias of `not_settled_fraction`, shape `(G,)`.
+
+        Despite the name it counts every run that did not settle, not only the
+        failed ones (`diverged_fraction` counts those whose closed loop diverged).
+        """
+        return self.not_settled_fraction
 
     @property
     def diverged_fraction(self) -> np.ndarray:
@@ -284,33 +298,76 @@ class SweepResult:
             "unresolved": int(self.unresolved.sum()),
         }
 
-    def param_summary(self) -> dict:
+    def param_summary(self, bins: int = 4) -> dict:
         """Outcomes by value of each swept parameter (over all gain pairs and attitudes).
 
-        **Returns:** ``{name: [{"value", "runs", "settled_fraction", "numerical",
-        "diverged", "unresolved", "mean_cost"}, ...]}``, one entry per distinct value.
+        A parameter with few distinct values (a grid, a short list) is listed value
+        by value. One with many (draws from a distribution, one per attitude) is
+        *continuous*: its columns are split into `bins` quantile bins, each
+        labelled by the range of values it holds; a 3-vector is binned by its
+        entry when its three entries are equal in every column, by its norm
+        otherwise. The rule (`is_continuous`): with ``n`` distinct values over
+        ``N`` columns (combinations x attitudes), a parameter is continuous when
+        ``n > bins`` and ``n^2 > N``, i.e. when its values average fewer columns
+        each than there are values.
+
+        **Arguments:**
+
+        - `bins`: number of quantile bins of a continuous parameter, >= 1.
+
+        **Returns:** ``{name: [row, ...]}``; each row holds ``"label"`` (the
+        value, or the range of a bin, as text), ``"binned"``, ``"value"`` (a
+        listed value) or ``"range"`` (``[low, high]`` of a bin; of the norm when
+        ``"of"`` is ``"norm"``), and the outcomes ``"runs"``,
+        ``"settled_fraction"``, ``"numerical"``, ``"diverged"``, ``"unresolved"``,
+        ``"mean_cost"`` (``None`` if no run has statistics).
         """
+        if isinstance(bins, bool) or not isinstance(bins, int | np.integer) or bins < 1:
+            raise ValueError(f"bins must be an integer >= 1, got {bins!r}")
         out = {}
         for name, col in self.params.items():
             col = np.asarray(col).reshape(col.shape[0], -1)
             values, inverse = np.unique(col, axis=0, return_inverse=True)
+            inverse = inverse.reshape(-1)
             rows = []
-            for k, v in enumerate(values):
-                cols = inverse.reshape(-1) == k
-                cost = self._masked(self.cost)[:, cols]
-                rows.append(
-                    {
-                        "value": v.tolist() if v.size > 1 else float(v[0]),
-                        "runs": int(cols.sum() * self.cost.shape[0]),
-                        "settled_fraction": float(self.settled[:, cols].mean()),
-                        "numerical": int(self.numerical[:, cols].sum()),
-                        "diverged": int(self.diverged[:, cols].sum()),
-                        "unresolved": int(self.unresolved[:, cols].sum()),
-                        "mean_cost": float(np.nanmean(cost)) if np.isfinite(cost).any() else None,
+            if not is_continuous(values.shape[0], col.shape[0], bins):
+                for k, v in enumerate(values):
+                    value = v.tolist() if v.size > 1 else float(v[0])
+                    row = {"label": str(value), "binned": False, "value": value}
+                    rows.append(row | self._outcomes(inverse == k))
+            else:
+                isotropic = bool(np.all(col == col[:, :1]))
+                of = "value" if isotropic else "norm"
+                q = col[:, 0] if isotropic else np.linalg.norm(col, axis=1)
+                edges = np.quantile(q, np.linspace(0.0, 1.0, bins + 1))
+                which = np.searchsorted(edges[1:-1], q, side="right")
+                for k in range(bins):
+                    cols = which == k
+                    if not cols.any():  # ties merged it into a neighbour
+                        continue
+                    lo, hi = float(q[cols].min()), float(q[cols].max())
+                    text = f"[{lo:.4g}, {hi:.4g}]"
+                    row = {
+                        "label": text if of == "value" else f"|v| in {text}",
+                        "binned": True,
+                        "of": of,
+                        "range": [lo, hi],
                     }
-                )
+                    rows.append(row | self._outcomes(cols))
             out[name] = rows
         return out
+
+    def _outcomes(self, cols: np.ndarray) -> dict:
+        """The outcomes of the runs in columns ``cols`` (a boolean mask), over all gains."""
+        cost = self._masked(self.cost)[:, cols]
+        return {
+            "runs": int(cols.sum() * self.cost.shape[0]),
+            "settled_fraction": float(self.settled[:, cols].mean()),
+            "numerical": int(self.numerical[:, cols].sum()),
+            "diverged": int(self.diverged[:, cols].sum()),
+            "unresolved": int(self.unresolved[:, cols].sum()),
+            "mean_cost": float(np.nanmean(cost)) if np.isfinite(cost).any() else None,
+        }
 
     def summary(self) -> dict:
         """A JSON-ready summary: outcome counts, the stable step, and the best gain pair."""
@@ -333,19 +390,25 @@ class SweepResult:
             "numerical_resolved_at_dt": [float(v) for v in resolved],
             "stable_dt_all_gains": self.dt_stable_all,
             "gains_beyond_stable_dt": int(beyond.sum()),
-            "failure_fraction_overall": float(1.0 - self.settled.mean()),
+            "not_settled_fraction_overall": float(1.0 - self.settled.mean()),
+            "failure_fraction_overall": float(1.0 - self.settled.mean()),  # the same (alias)
             "params": self.param_summary(),
             "best": {
                 "k_R": np.asarray(self.k_R[b]).tolist(),
                 "k_Omega": np.asarray(self.k_Omega[b]).tolist(),
                 "mean_cost": float(self.mean_cost[b]),
                 "median_settling_time": float(self.median_settling_time[b]),
-                "failure_fraction": float(self.failure_fraction[b]),
+                "not_settled_fraction": float(self.not_settled_fraction[b]),
+                "failure_fraction": float(self.not_settled_fraction[b]),  # the same (alias)
             },
         }
 
     def summary_table(self) -> str:
-        """The outcome counts and the stable step as a short text table."""
+        """The outcome counts, the stable step and the outcomes by parameter as a text table.
+
+        Parameters are listed as `param_summary` gives them: value by value, or in
+        quantile bins for a continuous one.
+        """
         n = self.cost.size
         c = self.outcome_counts()
         resolved = ", ".join(f"{v:.3g}" for v in np.unique(self.run_dt[self.numerical]))
@@ -380,11 +443,17 @@ class SweepResult:
                 "for all"
             )
         for name, rows in self.param_summary().items():
-            lines.append(f"by {name}:")
+            if rows and rows[0]["binned"]:
+                col = np.asarray(self.params[name])
+                n_values = np.unique(col.reshape(col.shape[0], -1), axis=0).shape[0]
+                what = name if rows[0]["of"] == "value" else f"|{name}|"
+                lines.append(f"by {name} ({n_values} distinct values; quantile bins of {what}):")
+            else:
+                lines.append(f"by {name}:")
             for r in rows:
                 cost = "nan" if r["mean_cost"] is None else f"{r['mean_cost']:.4g}"
                 lines.append(
-                    f"  {str(r['value']):<24} settled {r['settled_fraction']:>6.1%}  "
+                    f"  {r['label']:<24} settled {r['settled_fraction']:>6.1%}  "
                     f"numerical {r['numerical']}  diverged {r['diverged']}  mean cost {cost}"
                 )
         return "\n".join(lines)
@@ -438,6 +507,16 @@ class SweepResult:
             position_threshold=None if np.isnan(pt) else pt,
             **d,
         )
+
+
+def is_continuous(n_values: int, n_columns: int, bins: int) -> bool:
+    """Whether a swept parameter is summarised in quantile bins instead of value by value.
+
+    Continuous: more distinct values ``n`` than bins, and ``n^2 > N`` for ``N``
+    columns (its values average fewer columns each than there are values, as
+    with one draw per attitude); a grid of a few values over many attitudes is not.
+    """
+    return n_values > bins and n_values * n_values > n_columns
 
 
 def _nan_reduce(fn, values: np.ndarray) -> np.ndarray:

@@ -7,6 +7,7 @@ one (`_adaptive`), so that neither imports the other to build its result.
 from __future__ import annotations
 
 import operator
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -16,14 +17,32 @@ from ._so3 import _is_concrete, _to_dtype
 from ._state import LieState
 from ._types import Array, Float, Int
 
-#: Status codes of a run.
+#: Status codes of a run: what went wrong while stepping (1-3) ...
 OK, NONFINITE, SOLVER_FAILED, MAX_STEPS = 0, 1, 2, 3
+#: ... and what was wrong with the input before the first step (10-14) or inside a step (20).
+BAD_DT, BAD_R0, BAD_RD0, NONFINITE_START, NONFINITE_PARAMETER = 10, 11, 12, 13, 14
+COMMAND_UNDEFINED = 20
 _MESSAGES = {
     OK: "finite to the end",
     NONFINITE: "the state stopped being finite",
     SOLVER_FAILED: "the implicit solve of a step did not converge",
     MAX_STEPS: "the step budget (max_steps) ran out before t1",
+    BAD_DT: "dt is not positive and finite",
+    BAD_R0: "the initial attitude R0 is not a rotation",
+    BAD_RD0: "an initial reference attitude (Rd0) is not a rotation",
+    NONFINITE_START: "the initial state holds NaN or inf",
+    NONFINITE_PARAMETER: "a scene parameter (gains, inertia, reference, ...) is NaN or inf",
+    COMMAND_UNDEFINED: (
+        "the commanded attitude is undefined (b1_d parallel to the thrust axis b3c, "
+        "or no commanded thrust)"
+    ),
 }
+#: Codes of input that was bad before the first step: the run never started.
+INPUT_CODES = (BAD_DT, BAD_R0, BAD_RD0, NONFINITE_START, NONFINITE_PARAMETER)
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}" + ("" if n == 1 else "s")
 
 
 class Status(eqx.Module):
@@ -31,31 +50,83 @@ class Status(eqx.Module):
 
     **Fields:**
 
-    - `code`: 0 (finite to the end), 1 (the state stopped being finite), 2 (an
-      implicit solve did not converge), 3 (adaptive runs: ``max_steps`` ran
-      out); one per run under `vmap`.
+    - `code`: one per run under `vmap`; `Status.codes` maps each to its meaning:
+        - 0: finite to the end;
+        - 1: the state stopped being finite (a diverging closed loop, a step past
+          the stability limit);
+        - 2: an implicit solve did not converge (`LGVI`);
+        - 3: adaptive runs: ``max_steps`` ran out before ``t1``;
+        - 10-14: input that was bad before the first step, found under `jit` /
+          `vmap` (eagerly the same input raises a `ValueError`): ``dt`` not positive
+          and finite (10), ``R0`` not a rotation (11), a reference's ``Rd0`` not a
+          rotation (12), NaN or inf in the initial state (13) or in a parameter of
+          the scene such as a gain (14);
+        - 20: a step met a commanded attitude that is undefined (the quadrotor's
+          ``b1_d`` parallel to its thrust axis ``b3c``).
     - `step`: index of the step that failed (the state at time
-      ``t0 + step * dt`` was the last good one), or -1.
+      ``t0 + step * dt`` was the last good one), or -1 (no step failed, or the
+      input was bad before the first step).
+    - `t`: the time of the last good state (``t0 + step * dt``), NaN where no step
+      failed; ``None`` for runs that do not record it.
 
     After a failure the state is frozen at the last good value (a scene's
     time-driven rotations, such as the reference attitude ``Rd`` of a tracking
     scene, run on to the end) and the saved points past it are NaN, so a
-    diverging run never poisons a batch.
+    diverging run never poisons a batch. A run whose input was bad is NaN from
+    its first saved point.
     """
 
     code: Int[Array, "*batch"]
     step: Int[Array, "*batch"]
+    t: Float[Array, "*batch"] | None = None
+
+    #: The meaning of each code.
+    codes: ClassVar[dict[int, str]] = _MESSAGES
 
     @property
     def ok(self) -> Array:
         return self.code == OK
 
     def message(self) -> str:
-        """A sentence for a single (unbatched) run."""
-        code = int(self.code)
+        """A sentence for a single run; for a batch, counts per outcome and the first failure.
+
+        A batch's summary reads e.g. ``"62 of 64 runs finite to the end; 2 runs: the
+        state stopped being finite; first failure: run (3,) at step 118 (t = 0.118)"``.
+        """
+        code = np.asarray(self.code)
+        step = np.asarray(self.step)
+        t = None if self.t is None else np.asarray(self.t)
+        if code.ndim == 0:
+            return self._sentence(int(code), int(step), None if t is None else float(t))
+        values, counts = np.unique(code, return_counts=True)
+        parts = []
+        for value, count in zip(values.tolist(), counts.tolist(), strict=True):
+            if value == OK:
+                parts.insert(0, f"{count} of {code.size} runs {_MESSAGES[OK]}")
+            else:
+                parts.append(f"{_plural(count, 'run')}: {self._describe(value)}")
+        bad = np.argwhere(code != OK)
+        if len(bad):
+            i = tuple(int(j) for j in bad[0])
+            first = self._sentence(int(code[i]), int(step[i]), None if t is None else float(t[i]))
+            parts.append(f"first failure: run {i[0] if len(i) == 1 else i}, {first}")
+        return "; ".join(parts)
+
+    @staticmethod
+    def _describe(code: int) -> str:
+        return _MESSAGES.get(code, f"unknown status code {code}")
+
+    @classmethod
+    def _sentence(cls, code: int, step: int, t: float | None) -> str:
+        text = cls._describe(code)
         if code == OK:
-            return _MESSAGES[OK]
-        return f"{_MESSAGES[code]} at step {int(self.step)}"
+            return text
+        if code in INPUT_CODES or step < 0:
+            return f"{text} (before the first step)"
+        where = f" at step {step}"
+        if t is not None and np.isfinite(t):
+            where += f" (t = {t:.6g})"
+        return text + where
 
 
 def status_from_diffrax(result, ok: Array, n_accepted: Array) -> Status:
@@ -117,10 +188,9 @@ def _check_dt(dt, dtype) -> Array:
     """``dt`` as a scalar of ``dtype``, checked positive and finite.
 
     A concrete value (a Python float, a NumPy or JAX array) is checked here, before
-    conversion: under an active trace the conversion stages it, and a staged check
-    would need `eqx.error_if`, whose host callback keeps JAX's persistent compilation
-    cache from storing the program (`jax_compilation_cache_dir`). Only a ``dt`` that
-    is itself traced (an argument of the caller's ``jit``) gets `eqx.error_if`.
+    conversion: under an active trace the conversion stages it. A ``dt`` that is
+    itself traced (an argument of the caller's ``jit`` or ``vmap``) is checked in
+    the run instead: the run's `Status` says ``BAD_DT`` and its points are NaN.
     """
     if _is_concrete(dt):
         with np.errstate(over="ignore", under="ignore"):  # in the run's dtype: 1e-50 is 0
@@ -133,7 +203,7 @@ def _check_dt(dt, dtype) -> Array:
     dt = _to_dtype(dt, dtype)
     if dt.shape != ():
         raise ValueError(f"dt must be a scalar, got shape {dt.shape}")
-    return eqx.error_if(dt, ~(dt > 0), "dt must be positive and finite")
+    return dt
 
 
 def settling_time(t: Array, inside: Array) -> Array:

@@ -26,12 +26,19 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
-from ._control import GeometricController, GeometricGains
+from ._control import GeometricController, GeometricGains, _check_gain
 from ._engine import _jvp_through, jit_own, run
 from ._frames import Frame, frame_rule, right_or_zero
 from ._integrators import RKMK4, AbstractLieSolver
-from ._scene import Scene
-from ._simulate import engine_step, guarded_step, join_groups, split_groups, split_scene
+from ._scene import Scene, check_rotation
+from ._simulate import (
+    engine_step,
+    guarded_step,
+    input_code,
+    join_groups,
+    split_groups,
+    split_scene,
+)
 from ._so3 import _as_float, _cross, _is_concrete, _mm, _mT, _mtv, _mv, _vee
 from ._trajectory import OK, Trajectory, _check_dt, _check_int
 from ._types import Array, ArrayLike
@@ -55,12 +62,17 @@ def _check_tracking_scene(scene, name: str = "scene") -> None:
 
 
 def with_gains(scene, k_R: Array, k_Omega: Array):
-    """The scene with the geometric gains replaced (traceable: works under `vmap`/`grad`)."""
+    """The scene with the geometric gains replaced (traceable: works under `vmap`/`grad`).
+
+    Each gain is checked as `GeometricGains` checks it (shape `()` or `(3,)`, and,
+    when concrete, finite and non-negative): a `ValueError` naming it otherwise.
+    """
     dtype = scene.y0.R.dtype
+    k_R, k_Omega = _check_gain(k_R, "k_R"), _check_gain(k_Omega, "k_Omega")
     return eqx.tree_at(
         lambda s: (s.controller.gains.k_R, s.controller.gains.k_Omega),
         scene,
-        (jnp.asarray(k_R, dtype), jnp.asarray(k_Omega, dtype)),
+        (k_R.astype(dtype), k_Omega.astype(dtype)),
     )
 
 
@@ -81,9 +93,7 @@ def with_start(scene, R0: Array, Omega0: Array):
 
 
 def _gain_array(value, name: str, dtype) -> Array:
-    k = _as_float(value)
-    if k.shape not in ((), (3,)):
-        raise ValueError(f"{name} must be a scalar or a 3-vector, got shape {k.shape}")
+    k = _check_gain(value, name)
     if _is_concrete(k) and not (np.all(np.isfinite(np.asarray(k))) and np.all(np.asarray(k) > 0)):
         raise ValueError(f"{name} must be positive and finite, got {np.asarray(k)}")
     return k.astype(dtype)
@@ -408,9 +418,13 @@ def _rollout(
         return jnp.where(code == OK, _point_cost(sc, P[1], t0 + k * dt, y), jnp.nan)
 
     start = split_groups(scene.y0, R0)
-    f0 = _point_cost(scene, weights, t0, join_groups(*start))
+    y0 = join_groups(*start)
+    # Input that is bad under a trace (a traced dt <= 0, a start off the group): the
+    # run never starts and its cost is NaN, as `simulate`'s status would say.
+    code0 = input_code(scene, dt, y0)
+    f0 = jnp.where(code0 == OK, _point_cost(scene, weights, t0, y0), jnp.nan)
     i32 = jnp.int32
-    state = (start, jnp.array(0, i32), jnp.array(OK, i32), jnp.array(-1, i32))
+    state = (start, jnp.array(0, i32), code0, jnp.array(-1, i32))
     checkpoint = n_steps if block is None else block * save_every
     P = (params, weights)
     if save_every > 1:  # the integrand at every save_every-th step, saved
@@ -485,6 +499,14 @@ class TuneResult:
     gains_history: object = None
 
 
+def _check_batch_shape(x, name: str, trailing: tuple[int, ...]) -> None:
+    """``x`` must have shape ``(B, *trailing)``: a `ValueError` naming it otherwise."""
+    shape = tuple(jnp.shape(x))
+    if len(shape) != 1 + len(trailing) or shape[1:] != trailing:
+        want = "(B, " + ", ".join(map(str, trailing)) + ")"
+        raise ValueError(f"{name} must have shape {want} (a batch of starts), got {shape}")
+
+
 def _initial_batch(scene, R0, Omega0):
     dtype = scene.y0.R.dtype
     if R0 is None:
@@ -536,6 +558,13 @@ def expected_cost(
     """
 
     args = _rollout_args(scene, method, dt, n_steps, weights, save_every, checkpoint_every, 0.0)
+    _check_batch_shape(R0, "R0", (3, 3))
+    _check_batch_shape(Omega0, "Omega0", (3,))
+    if R0.shape[0] != Omega0.shape[0]:
+        raise ValueError(
+            f"R0 and Omega0 must hold the same number of starts, got {R0.shape[0]} and "
+            f"{Omega0.shape[0]}"
+        )
 
     def one(R, W):
         # The start goes in apart from the scene's attitudes, so the batch shares Rd.
@@ -566,6 +595,7 @@ def tune(
     cost: Callable | None = None,
     bounds: tuple | None = None,
     where: Callable | None = None,
+    starts=None,
 ) -> TuneResult:
     """Tune a controller's gains by gradient descent on a cost of the trajectory.
 
@@ -585,6 +615,8 @@ def tune(
     - `R0`: initial attitudes averaged over, shape `(B, 3, 3)` (default: the
       scene's own initial attitude), e.g. `random_rotation(key, (B,))`.
     - `Omega0`: initial rates, shape `(3,)` or `(B, 3)` (default: the scene's).
+    - `starts`: the initial states in one argument, instead of `R0` / `Omega0`:
+      attitudes `(B, 3, 3)`, or a pair ``(R0, Omega0)``.
     - `weights`: a `CostWeights`.
     - `n_iter`: number of optimiser steps.
     - `learning_rate`: Adam's step in log-gain (0.1: about 10% per step).
@@ -618,17 +650,24 @@ def tune(
     - `optimizer` (or `learning_rate` for the default Adam), `n_iter`,
       `gradient` (``"auto"``, ``"reverse"`` or ``"forward"``, as above), `method`,
       `dt`, `n_steps`, `save_every`, `progress`
-      as above; `R0`, `Omega0`, `weights`, `per_axis` and `checkpoint_every`
+      as above; `weights`, `per_axis` and `checkpoint_every`
       belong to the default tracking cost and are not accepted.
+    - `starts` (or `R0` / `Omega0`): initial states to average the cost over,
+      ``1/B sum_b cost(simulate(..., R0=R0_b, Omega0=Omega0_b))``: attitudes of
+      shape `(B, 3, 3)`, or a pair ``(R0, Omega0)`` with rates of shape `(3,)` or
+      `(B, 3)` (default: the scene's own start). The runs are one `vmap`, and the
+      gradient is the mean of the single-start gradients.
 
     **Returns:** a `TuneResult` (the best gains seen and the cost history).
     """
     import optax
 
+    if starts is not None:
+        if R0 is not None or Omega0 is not None:
+            raise ValueError("pass the initial states either as starts or as R0/Omega0, not both")
+        R0, Omega0 = starts if isinstance(starts, tuple | list) else (starts, None)
     if cost is not None:
         legacy = {
-            "R0": R0 is not None,
-            "Omega0": Omega0 is not None,
             "weights": weights is not None,
             "per_axis": per_axis,
             "checkpoint_every": checkpoint_every != "auto",
@@ -637,7 +676,7 @@ def tune(
         if given:
             raise ValueError(
                 f"{', '.join(given)} belong(s) to the default tracking cost; with a custom "
-                "cost, put the initial state in the scene and the weights in the cost"
+                "cost, put the weights in the cost (starts= averages it over initial states)"
             )
         return _tune_general(
             scene,
@@ -653,6 +692,8 @@ def tune(
             where=where,
             gradient=gradient,
             progress=progress,
+            R0=R0,
+            Omega0=Omega0,
         )
     if bounds is not None or where is not None:
         raise ValueError("bounds and where are for a custom cost (pass cost=...)")
@@ -835,6 +876,8 @@ def _tune_general(
     where,
     gradient,
     progress,
+    R0=None,
+    Omega0=None,
 ) -> TuneResult:
     import optax
 
@@ -879,11 +922,24 @@ def _tune_general(
 
         params = project(params)
 
+    batch = None if R0 is None and Omega0 is None else _initial_batch(scene, R0, Omega0)
+    if batch is not None and _is_concrete(batch[0]):
+        for b, R in enumerate(np.asarray(batch[0])):
+            check_rotation(R, f"R0[{b}]")
+        if not np.all(np.isfinite(np.asarray(batch[1]))):
+            raise ValueError("Omega0 contains NaN or inf")
+
     def loss(p):
         from ._simulate import simulate
 
         sc = eqx.tree_at(where, scene, p)
-        return cost(simulate(sc, method, dt, n_steps, save_every))
+        if batch is None:
+            return cost(simulate(sc, method, dt, n_steps, save_every))
+
+        def one(R, W):
+            return cost(simulate(sc, method, dt, n_steps, save_every, R0=R, Omega0=W))
+
+        return jnp.mean(jax.vmap(one)(*batch))
 
     optimizer = optax.apply_if_finite(optimizer, max_consecutive_errors=5)
     opt_state = optimizer.init(params)

@@ -12,6 +12,13 @@ Quantities:
   accurate down to round-off (the trace formula bottoms out at ~1e-16).
 - the seed's normalised distance ``||R - Rd||_F / (2 sqrt 2)`` in ``[0, 1]``.
 - ``|e_Omega|``, the torque ``M``, the orthogonality error ``||R^T R - I||_F``.
+
+Log panels start at a floor set by the data type's machine epsilon (values below
+it, zeros included, are drawn at the floor and the axis never goes lower):
+``eps^2`` for ``Psi`` (it resolves angles down to ``eps``), ``eps`` for the
+distance, ``eps`` times the run's largest ``|Omega|`` or ``|e_Omega|`` for
+``|e_Omega|``, and ``eps / 100`` for the panels that draw machine epsilon as a
+reference line (orthogonality, conservation and constraint errors).
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ import numpy as np
 
 # Figures of a quadrotor run, and of a `SweepResult` and a `TuneResult`, live in
 # their own modules.
+from ._plot_log import log_floor, log_line, peak
 from ._plot_quadrotor import quadrotor_figure as quadrotor_figure, quadrotor_path as quadrotor_path
 from ._plot_sweep import (
     settling_distribution as settling_distribution,
@@ -104,8 +112,9 @@ def _axes(ax, **subplots):
     return ax.figure, ax
 
 
-def _positive(y, floor=1e-300):
-    return np.maximum(y, floor)
+def _dtype(a):
+    """The floating type the plotted data were computed in (before `_np` widens it)."""
+    return np.asarray(a).dtype
 
 
 def _need_tracking(traj, what):
@@ -127,12 +136,17 @@ def attitude_error(traj, ax=None):
     R = _check_single(traj)
     t, Rd = _np(traj.t), _np(traj.Rd)
     fig, ax = _axes(ax, figsize=(6, 3.5))
-    ax.semilogy(t, _positive(error_function(R, Rd)), label=r"$\Psi = \frac{1}{2}\,tr(I - R_d^T R)$")
-    ax.semilogy(
+    dtype = _dtype(traj.R)
+    eps = log_floor(dtype)
+    log_line(
+        ax,
         t,
-        _positive(normalized_distance(R, Rd)),
-        "--",
-        label=r"$\|R - R_d\|_F / (2\sqrt{2})$",
+        error_function(R, Rd),
+        floor=log_floor(dtype, eps),
+        label=r"$\Psi = \frac{1}{2}\,tr(I - R_d^T R)$",
+    )
+    log_line(
+        ax, t, normalized_distance(R, Rd), "--", floor=eps, label=r"$\|R - R_d\|_F / (2\sqrt{2})$"
     )
     ax.set_xlabel("t [s]")
     ax.set_ylabel("attitude error")
@@ -156,10 +170,13 @@ def angular_velocity_error(traj, ax=None):
     t = _np(traj.t)
     fig, ax = _axes(ax, figsize=(6, 3.5))
     if "e_Omega" in traj.extras:
-        y, label = _np(traj.extras["e_Omega"]), r"$|e_\Omega|$"
+        raw, label = traj.extras["e_Omega"], r"$|e_\Omega|$"
     else:
-        y, label = _np(traj.Omega), r"$|\Omega|$"
-    ax.semilogy(t, _positive(np.linalg.norm(y, axis=-1)), label=label)
+        raw, label = traj.Omega, r"$|\Omega|$"
+    y = np.linalg.norm(_np(raw), axis=-1)
+    # e_Omega = Omega - R^T Rd Omega_d carries the round-off of |Omega|.
+    scale = peak(y, np.linalg.norm(_np(traj.Omega), axis=-1))
+    log_line(ax, t, y, floor=log_floor(_dtype(raw), scale), label=label)
     ax.set_xlabel("t [s]")
     ax.set_ylabel("rad/s")
     ax.set_title("Angular-velocity error")
@@ -206,11 +223,11 @@ def orthogonality(traj, ax=None):
     R = _check_single(traj)
     t = _np(traj.t)
     fig, ax = _axes(ax, figsize=(6, 3.5))
-    eps = np.finfo(np.asarray(traj.R).dtype).eps
-    ax.semilogy(t, _positive(_orth(R), eps / 100), label=r"$\|R^T R - I\|_F$")
+    eps = log_floor(_dtype(traj.R))
+    log_line(ax, t, _orth(R), floor=eps / 100, label=r"$\|R^T R - I\|_F$")
     if traj.Rd is not None:
         Rd = _np(traj.Rd)
-        ax.semilogy(t, _positive(_orth(Rd), eps / 100), "--", label=r"$\|R_d^T R_d - I\|_F$")
+        log_line(ax, t, _orth(Rd), "--", floor=eps / 100, label=r"$\|R_d^T R_d - I\|_F$")
     ax.axhline(eps, color="gray", lw=0.8, ls=":", label="machine epsilon")
     ax.set_xlabel("t [s]")
     ax.set_title("Orthogonality error")
@@ -267,15 +284,15 @@ def free_body_figure(traj, body=None, title: str | None = None):
     axs[0].legend(fontsize=8)
     axs[0].grid(True, alpha=0.3)
     ax = axs[1]
-    eps = np.finfo(np.asarray(traj.R).dtype).eps
+    eps = log_floor(_dtype(traj.R))
     if body is not None:
         J = _np(body.inertia)
         T = 0.5 * np.einsum("ni,ij,nj->n", Om, J, Om)
         pi = np.einsum("nij,jk,nk->ni", R, J, Om)
         dT = np.abs(T / T[0] - 1)
         dpi = np.linalg.norm(pi - pi[0], axis=-1) / max(np.linalg.norm(pi[0]), 1e-300)
-        ax.semilogy(t, _positive(dT, eps / 100), label="energy (relative)")
-        ax.semilogy(t, _positive(dpi, eps / 100), label="spatial momentum (relative)")
+        log_line(ax, t, dT, floor=eps / 100, label="energy (relative)")
+        log_line(ax, t, dpi, floor=eps / 100, label="spatial momentum (relative)")
         ax.set_title("Conservation errors")
     else:
         ax.plot(t, np.linalg.norm(Om, axis=-1), label=r"$|\Omega|$")
@@ -310,7 +327,7 @@ def suslov_figure(traj, scene, title: str | None = None):
     _check_single(traj)
     t, Om = _np(traj.t), _np(traj.Omega)
     J, a = _np(scene.body.inertia), _np(scene.a)
-    eps = np.finfo(np.asarray(traj.Omega).dtype).eps
+    eps = log_floor(_dtype(traj.Omega))
     fig, axs = plt.subplots(2, 2, figsize=(11, 7), constrained_layout=True)
     ax = axs[0, 0]
     for i in range(3):
@@ -319,11 +336,11 @@ def suslov_figure(traj, scene, title: str | None = None):
     ax.set_ylabel("rad/s")
     ax = axs[0, 1]
     T = 0.5 * np.einsum("ni,ij,nj->n", Om, J, Om)
-    ax.semilogy(t, _positive(np.abs(T / T[0] - 1), eps / 100), label=r"$|T/T_0 - 1|$")
+    log_line(ax, t, np.abs(T / T[0] - 1), floor=eps / 100, label=r"$|T/T_0 - 1|$")
     ax.set_title("Energy error (relative)")
     ax = axs[1, 0]
     res = np.abs(Om @ a) / max(np.linalg.norm(Om[0]), 1e-300)
-    ax.semilogy(t, _positive(res, eps / 100), label=r"$|\langle\Omega, a\rangle| / |\Omega_0|$")
+    log_line(ax, t, res, floor=eps / 100, label=r"$|\langle\Omega, a\rangle| / |\Omega_0|$")
     ax.axhline(eps, color="gray", lw=0.8, ls=":", label="machine epsilon")
     ax.set_title("Constraint residual")
     ax = axs[1, 1]

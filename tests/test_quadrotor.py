@@ -362,7 +362,10 @@ def test_sweep_takes_quadrotor_scenes(tmp_path):
     from so3jax._quadrotor import quadrotor_recovery
 
     # Sampled control: upside-down starts recover; no step limit from the feedback.
-    sc = quadrotor_recovery(control_period=0.01)
+    # DiffTune's gains (the scene's default is the paper's, whose stiffer position loop
+    # keeps every one of these starts finite): one run diverges.
+    difftune = gains_from(G0)
+    sc = quadrotor_recovery(control_period=0.01, gains=difftune)
     # (The array program compiles faster; the CLI test in test_sweep.py runs the scalarized one.)
     r = s.sweep(sc, [8.81], [2.54], n_attitudes=3, key=2, dt=0.01, n_steps=300, save_every=3,
                 position_threshold=1.0, scalarize=False, progress=False)  # fmt: skip
@@ -406,7 +409,7 @@ def test_sweep_takes_quadrotor_scenes(tmp_path):
 
     # Continuous control past RKMK4's step limit (k_Omega = 60): resolved at a smaller step,
     # with every statistic (the position ones too) from that run.
-    cont = quadrotor_recovery(control_period=None)
+    cont = quadrotor_recovery(control_period=None, gains=difftune)
     with pytest.warns(UserWarning, match="beyond the stability limit"):
         r = s.sweep(cont, [8.81, 8.81], [2.54, 60.0], grid=False, n_attitudes=1, dt=0.01,
                     n_steps=60, save_every=2, scalarize=False, progress=False)  # fmt: skip
