@@ -44,7 +44,9 @@ from ._trajectory import (
     Trajectory,
     _check_dt,
     _check_int,
+    _nan_unless,
     _trajectory,
+    input_code,
     status_from_diffrax,
 )
 from ._types import Array
@@ -320,9 +322,10 @@ def _fixed(scene, solver, dt, t0, n_save: int, save_every: int, project: bool) -
         return carry, (t, obs)
 
     i32 = jnp.int32
-    init = (y0, state0, jnp.array(0, i32), jnp.array(OK, i32), jnp.array(-1, i32))
+    code0 = input_code(scene, dt, y0)
+    init = (y0, state0, jnp.array(0, i32), code0, jnp.array(-1, i32))
     (y, _, k, code, bad), (ts, obs) = jax.lax.scan(save_block, init, None, length=n_save)
-    obs0 = scene.observe(t0, y0)
+    obs0 = _nan_unless(code0 == OK, scene.observe(t0, y0))
     t = jnp.concatenate([t0[None], ts])
     obs = jax.tree.map(lambda a0, a: jnp.concatenate([a0[None], a]), obs0, obs)
     per_step, at_start = _evals_per_step(solver, fresh)

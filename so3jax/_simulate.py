@@ -9,15 +9,11 @@ import jax.numpy as jnp
 from ._adaptive import simulate_adaptive
 from ._engine import run
 from ._integrators import AbstractLieSolver
-from ._scene import Scene, check_rotation, check_vector, not_rotation
+from ._scene import Scene, check_rotation, check_vector
 from ._so3 import _to_dtype
 from ._state import LieState, all_finite
 from ._trajectory import (
-    BAD_DT,
-    BAD_R0,
-    BAD_RD0,
     NONFINITE,
-    NONFINITE_PARAMETER,
     NONFINITE_START,
     OK,
     SOLVER_FAILED,
@@ -25,7 +21,9 @@ from ._trajectory import (
     Trajectory,
     _check_dt,
     _check_int,
+    _nan_unless,
     _trajectory,
+    input_code,
 )
 from ._types import Array
 
@@ -349,36 +347,6 @@ def _simulate(
     return _trajectory(t, obs, Status(code=code, step=bad, t=t_bad), y)
 
 
-def input_code(scene, dt, y0: LieState) -> Array:
-    """The `Status` code of a run's input, checked in the traced program (0: good).
-
-    Eagerly, bad values raise a `ValueError` before tracing; under `jit` / `vmap`
-    a run with bad input starts with this code, so its state stays frozen and its
-    saved points are NaN, while the other runs of a batch go on untouched. In
-    order: ``dt`` not positive and finite, a non-finite initial state, a body
-    attitude or a reference attitude that is not a rotation, a non-finite
-    parameter of the scene (gains, inertia, reference).
-    """
-    params = jax.tree.leaves(
-        eqx.filter(eqx.tree_at(lambda s: s.y0, scene, None), eqx.is_inexact_array)
-    )
-    params_finite = (
-        jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in params])) if params else True
-    )
-    not_rot = not_rotation(y0.R)
-    checks = [
-        (~(jnp.isfinite(dt) & (dt > 0)), BAD_DT),
-        (~all_finite(y0), NONFINITE_START),
-        (not_rot[0], BAD_R0),
-        (jnp.any(not_rot[1:]), BAD_RD0),
-        (~params_finite, NONFINITE_PARAMETER),
-    ]
-    code = jnp.array(OK, jnp.int32)
-    for bad, value in reversed(checks):  # the first that holds wins
-        code = jnp.where(bad, jnp.int32(value), code)
-    return code
-
-
 def diagnose(scene, code: Array, t: Array, y: LieState) -> Array:
     """``code``, with "not finite" replaced by the cause `Scene.fault` names at ``(t, y)``.
 
@@ -389,8 +357,3 @@ def diagnose(scene, code: Array, t: Array, y: LieState) -> Array:
         return code
     cause = scene.fault(t, y)
     return jnp.where(((code == NONFINITE) | (code == NONFINITE_START)) & (cause != OK), cause, code)
-
-
-def _nan_unless(keep: Array, tree):
-    """``tree`` where ``keep``, NaN elsewhere (float leaves)."""
-    return jax.tree.map(lambda a: jnp.where(keep, a, jnp.nan), tree)

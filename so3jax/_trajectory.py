@@ -10,11 +10,13 @@ import operator
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._scene import not_rotation
 from ._so3 import _is_concrete, _to_dtype
-from ._state import LieState
+from ._state import LieState, all_finite
 from ._types import Array, Float, Int
 
 #: Status codes of a run: what went wrong while stepping (1-3) ...
@@ -204,6 +206,41 @@ def _check_dt(dt, dtype) -> Array:
     if dt.shape != ():
         raise ValueError(f"dt must be a scalar, got shape {dt.shape}")
     return dt
+
+
+def input_code(scene, dt, y0: LieState) -> Array:
+    """The `Status` code of a run's input, checked in the traced program (0: good).
+
+    Eagerly, bad values raise a `ValueError` before tracing; under `jit` / `vmap`
+    a run with bad input starts with this code, so its state stays frozen and its
+    saved points are NaN, while the other runs of a batch go on untouched. In
+    order: ``dt`` not positive and finite, a non-finite initial state, a body
+    attitude or a reference attitude that is not a rotation, a non-finite
+    parameter of the scene (gains, inertia, reference).
+    """
+    params = jax.tree.leaves(
+        eqx.filter(eqx.tree_at(lambda s: s.y0, scene, None), eqx.is_inexact_array)
+    )
+    params_finite = (
+        jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in params])) if params else True
+    )
+    not_rot = not_rotation(y0.R)
+    checks = [
+        (~(jnp.isfinite(dt) & (dt > 0)), BAD_DT),
+        (~all_finite(y0), NONFINITE_START),
+        (not_rot[0], BAD_R0),
+        (jnp.any(not_rot[1:]), BAD_RD0),
+        (~params_finite, NONFINITE_PARAMETER),
+    ]
+    code = jnp.array(OK, jnp.int32)
+    for bad, value in reversed(checks):  # the first that holds wins
+        code = jnp.where(bad, jnp.int32(value), code)
+    return code
+
+
+def _nan_unless(keep: Array, tree):
+    """``tree`` where ``keep``, NaN elsewhere (float leaves)."""
+    return jax.tree.map(lambda a: jnp.where(keep, a, jnp.nan), tree)
 
 
 def settling_time(t: Array, inside: Array) -> Array:

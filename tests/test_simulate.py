@@ -247,7 +247,7 @@ def test_rejects_wrong_scene_or_method():
 
 
 def _run_traced_dt(dt):
-    return so3jax.simulate(free_body(), so3jax.LieEuler(), dt, 10).R
+    return so3jax.simulate(free_body(), so3jax.LieEuler(), dt, 10)
 
 
 _JITTED = {"jax.jit": jax.jit(_run_traced_dt), "eqx.filter_jit": eqx.filter_jit(_run_traced_dt)}
@@ -257,11 +257,18 @@ _JITTED = {"jax.jit": jax.jit(_run_traced_dt), "eqx.filter_jit": eqx.filter_jit(
     "jit, dt",
     [("jax.jit", -0.1), ("jax.jit", 0.0), ("jax.jit", np.nan), ("eqx.filter_jit", -0.1)],
 )
-def test_traced_bad_dt_raises_under_jit(jit, dt):
+def test_traced_bad_dt_is_a_status_under_jit(jit, dt):
+    """A traced ``dt`` is checked in the run: its status names it and its points are NaN.
+    (`eqx.filter_jit` keeps a Python float static: it is checked while tracing.)"""
     run = _JITTED[jit]
-    assert np.all(np.isfinite(run(0.1)))
-    with pytest.raises(Exception, match="dt must be positive"):
-        jax.block_until_ready(run(dt))
+    assert np.all(np.isfinite(run(0.1).R))
+    if jit == "eqx.filter_jit":
+        with pytest.raises(ValueError, match="dt must be positive"):
+            run(dt)
+        dt = jnp.asarray(dt)
+    traj = run(dt)
+    assert traj.status.message() == "dt is not positive and finite (before the first step)"
+    assert np.all(np.isnan(np.asarray(traj.R)))
 
 
 @pytest.mark.parametrize("dt", [-0.1, np.nan, np.float32(0.0)])
@@ -276,8 +283,8 @@ def test_constant_bad_dt_raises_while_tracing(dt):
 def test_programs_with_a_constant_dt_have_no_host_callback():
     """JAX's persistent compilation cache does not store a program with a host callback
     (`eqx.error_if` has one): with ``dt`` a Python float, the programs users jit (a batch
-    of `simulate`, the gradient of `expected_cost`, fixed-step `simulate_ambient`) have none;
-    a traced ``dt`` keeps its checked error."""
+    of `simulate`, the gradient of `expected_cost`, fixed-step `simulate_ambient`) have none,
+    and neither has a run whose ``dt`` is traced: its check is a `Status` code."""
     sc = so3jax.scenes.seed()
     R0s = so3jax.random_rotation(jax.random.key(0), (4,))
     R0, W0 = so3jax.initial_states(jax.random.key(1), 2)
@@ -297,7 +304,7 @@ def test_programs_with_a_constant_dt_have_no_host_callback():
     assert callbacks(batch, R0s) == 0
     assert callbacks(jax.grad(cost), jnp.array([8.81, 2.54])) == 0
     assert callbacks(ambient, sc) == 0
-    assert callbacks(_run_traced_dt, 0.1) > 0  # the traced dt's check
+    assert callbacks(lambda h: _run_traced_dt(h).R, 0.1) == 0  # a traced dt: a status
 
 
 # --------------------------------------------------------------------------
@@ -314,7 +321,9 @@ def test_divergence_is_reported_with_the_step():
     assert int(tr.status.code) == 1
     k = int(tr.status.step)
     assert 0 < k < n
-    assert tr.status.message() == f"the state stopped being finite at step {k}"
+    assert tr.status.message() == (
+        f"the state stopped being finite at step {k} (t = {k * BLOWUP_DT:.6g})"
+    )
     assert not bool(tr.status.ok)
     finite = np.isfinite(np.asarray(tr.R)).all(axis=(1, 2))
     # Points 0..k (the state at t0 + k dt was the last good one) are kept, NaN after.
