@@ -322,7 +322,7 @@ def _fixed(scene, solver, dt, t0, n_save: int, save_every: int, project: bool) -
         return carry, (t, obs)
 
     i32 = jnp.int32
-    code0 = input_code(scene, dt, y0)
+    code0 = input_code(scene, dt, list(y0.R), y0.x)
     init = (y0, state0, jnp.array(0, i32), code0, jnp.array(-1, i32))
     (y, _, k, code, bad), (ts, obs) = jax.lax.scan(save_block, init, None, length=n_save)
     obs0 = _nan_unless(code0 == OK, scene.observe(t0, y0))

@@ -315,7 +315,7 @@ def _simulate(
     start = split_groups(y0, R0)
     y0 = join_groups(*start)
     i32 = jnp.int32
-    code0 = input_code(scene, dt, y0)
+    code0 = input_code(scene, dt, *start)
     init = (start, jnp.array(0, i32), code0, jnp.array(-1, i32))
     if compensated:
         init = init + (jnp.zeros_like(y0.R),)

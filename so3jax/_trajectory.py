@@ -6,6 +6,7 @@ one (`_adaptive`), so that neither imports the other to build its result.
 
 from __future__ import annotations
 
+import functools
 import operator
 from typing import ClassVar
 
@@ -208,7 +209,7 @@ def _check_dt(dt, dtype) -> Array:
     return dt
 
 
-def input_code(scene, dt, y0: LieState) -> Array:
+def input_code(scene, dt, groups, x: Array) -> Array:
     """The `Status` code of a run's input, checked in the traced program (0: good).
 
     Eagerly, bad values raise a `ValueError` before tracing; under `jit` / `vmap`
@@ -217,20 +218,22 @@ def input_code(scene, dt, y0: LieState) -> Array:
     order: ``dt`` not positive and finite, a non-finite initial state, a body
     attitude or a reference attitude that is not a rotation, a non-finite
     parameter of the scene (gains, inertia, reference).
+
+    The initial state comes as its rotation groups (a sequence of `(3, 3)` arrays)
+    and vector part ``x``: each group is checked apart, so a group that a batch's
+    runs share (a reference attitude) is checked once, not once per run.
     """
     params = jax.tree.leaves(
         eqx.filter(eqx.tree_at(lambda s: s.y0, scene, None), eqx.is_inexact_array)
     )
-    params_finite = (
-        jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in params])) if params else True
-    )
-    not_rot = not_rotation(y0.R)
+    finite = [jnp.all(jnp.isfinite(a)) for a in params]
+    not_rot = [not_rotation(R) for R in groups]
     checks = [
         (~(jnp.isfinite(dt) & (dt > 0)), BAD_DT),
-        (~all_finite(y0), NONFINITE_START),
+        (~all_finite((tuple(groups), x)), NONFINITE_START),
         (not_rot[0], BAD_R0),
-        (jnp.any(not_rot[1:]), BAD_RD0),
-        (~params_finite, NONFINITE_PARAMETER),
+        (functools.reduce(jnp.logical_or, not_rot[1:], jnp.array(False)), BAD_RD0),
+        (~functools.reduce(jnp.logical_and, finite, jnp.array(True)), NONFINITE_PARAMETER),
     ]
     code = jnp.array(OK, jnp.int32)
     for bad, value in reversed(checks):  # the first that holds wins

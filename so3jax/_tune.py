@@ -421,7 +421,7 @@ def _rollout(
     y0 = join_groups(*start)
     # Input that is bad under a trace (a traced dt <= 0, a start off the group): the
     # run never starts and its cost is NaN, as `simulate`'s status would say.
-    code0 = input_code(scene, dt, y0)
+    code0 = input_code(scene, dt, *start)
     f0 = jnp.where(code0 == OK, _point_cost(scene, weights, t0, y0), jnp.nan)
     i32 = jnp.int32
     state = (start, jnp.array(0, i32), code0, jnp.array(-1, i32))
