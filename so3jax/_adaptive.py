@@ -37,7 +37,14 @@ from ._integrators._diffrax import DiffraxLieAdaptiveSolver, diffrax_solver, lie
 from ._scene import Scene
 from ._so3 import _is_concrete
 from ._state import all_finite
-from ._trajectory import Trajectory, _check_int, _trajectory, status_from_diffrax
+from ._trajectory import (
+    Trajectory,
+    _check_int,
+    _trajectory,
+    input_code,
+    mark_bad_input,
+    status_from_diffrax,
+)
 from ._types import Array
 
 #: Default number of saved points (equally spaced, both ends included).
@@ -166,8 +173,15 @@ def simulate_adaptive(
     max_steps = _check_int(max_steps, "max_steps", 1)
     args = (scene, solver, t0, t1, ts, rtol, atol, dt0)
     if adjoint is not None:
-        return _simulate_adaptive(*args, max_steps, adjoint)
-    return _simulate_default(args, max_steps)
+        traj = _simulate_adaptive(*args, max_steps, adjoint)
+    else:
+        traj = _simulate_default(args, max_steps)
+    if all(_is_concrete(a) for a in jax.tree.leaves((scene, dt0))):
+        return traj  # concrete input was checked eagerly
+    # Traced input (the caller's jit / vmap): a bad value is a status, as with fixed steps.
+    one = jnp.ones((), dtype)
+    code0 = input_code(scene, one if dt0 is None else dt0, list(scene.y0.R), scene.y0.x)
+    return mark_bad_input(traj, code0)
 
 
 @eqx.filter_jit

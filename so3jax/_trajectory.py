@@ -241,6 +241,36 @@ def input_code(scene, dt, groups, x: Array) -> Array:
     return code
 
 
+def mark_bad_input(traj: Trajectory, code0: Array) -> Trajectory:
+    """``traj`` with a run whose input code ``code0`` is not OK marked: its status says
+    ``code0`` (step -1) and its saved points and final state are NaN (float leaves;
+    counters such as the number of steps stay)."""
+    started = code0 == OK
+
+    def nan(tree):
+        return jax.tree.map(
+            lambda a: jnp.where(started, a, jnp.nan) if jnp.issubdtype(a.dtype, jnp.inexact) else a,
+            tree,
+        )
+
+    s = traj.status
+    status = Status(
+        code=jnp.where(started, s.code, code0),
+        step=jnp.where(started, s.step, -1),
+        t=None if s.t is None else jnp.where(started, s.t, jnp.nan),
+    )
+    return Trajectory(
+        t=traj.t,
+        R=nan(traj.R),
+        Omega=nan(traj.Omega),
+        status=status,
+        y=nan(traj.y),
+        Rd=nan(traj.Rd),
+        M=nan(traj.M),
+        extras=nan(traj.extras),
+    )
+
+
 def _nan_unless(keep: Array, tree):
     """``tree`` where ``keep``, NaN elsewhere (float leaves)."""
     return jax.tree.map(lambda a: jnp.where(keep, a, jnp.nan), tree)

@@ -293,3 +293,18 @@ def test_tune_over_starts_is_the_mean_of_single_start_gradients():
         for b in range(3)
     ]
     assert result.cost_history[0] == pytest.approx(np.mean(costs), rel=1e-12)
+
+
+def test_adaptive_runs_follow_the_same_rule():
+    """Adaptive steps (diffrax's controller): a traced non-rotation start is a status too."""
+    sc = scenes.free_body(jnp.array([1.0, 2.0, 3.0]), jnp.eye(3), jnp.array([0.1, 1.0, 0.1]))
+
+    def run(R):
+        return so3jax.simulate(sc, so3jax.RKMK45(), t1=0.2, rtol=1e-8, atol=1e-8, saveat=3, R0=R)
+
+    with pytest.raises(ValueError, match="R0 is not a rotation"):
+        run(PAPER_R0)
+    Rs = jnp.stack([_good_R(), jnp.asarray(PAPER_R0)])
+    traj = jax.jit(jax.vmap(run))(Rs)
+    _assert_failed_from_start(traj, 1, BAD_R0)
+    _assert_equal_unbatched(traj, 0, run(Rs[0]))
