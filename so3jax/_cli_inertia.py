@@ -159,47 +159,25 @@ def checked_inertia():
 
 
 def with_inertia(scene, inertia):
-    """``scene`` rebuilt by its constructor with the body inertia ``inertia``.
-
-    A tracking scene through `scenes.tracking` (same controller, reference and
-    initial state), a free body through `scenes.free_body`, a quadrotor through
-    `scenes.quadrotor` (same mass, gravity, gains, reference, initial state and
-    control period; the control held at ``t = 0`` is sampled again with the new
-    inertia). `RigidBody` recomputes ``J^-1``.
+    """``scene`` rebuilt by its constructor with the body inertia ``inertia``
+    (`Scene.with_inertia`: `RigidBody` recomputes ``J^-1``, a quadrotor samples its
+    held control at ``t = 0`` anew).
 
     **Arguments:**
 
-    - `scene`: a `Tracking`, `FreeBody` or `Quadrotor` scene.
+    - `scene`: a scene with a body inertia (`Scene.with_inertia`).
     - `inertia`: 3 principal moments or a `(3, 3)` matrix, checked by `check_inertia`.
 
     **Returns:** a scene of the same type, in the dtype of ``scene``.
     """
-    from . import scenes
     from ._dynamics import RigidBody
 
-    dtype = scene.y0.R.dtype
     with checked_inertia():
-        body = RigidBody(np.asarray(inertia, dtype))
-    y0 = scene.y0
-    if type(scene) is scenes.Tracking:
-        return scenes.tracking(body, scene.controller, y0.R[0], y0.x[:3], y0.R[1], scene.reference)
-    if type(scene) is scenes.FreeBody:
-        return scenes.free_body(body, y0.R[0], y0.x)
-    if type(scene) is scenes.Quadrotor:
-        v = scene.vehicle
-        return scenes.quadrotor(
-            v.mass,
-            body,
-            scene.gains,
-            scene.reference,
-            x0=y0.x[3:6],
-            v0=y0.x[6:9],
-            R0=y0.R[0],
-            Omega0=y0.x[0:3],
-            g=v.g,
-            control_period=scene.control_period,
-        )
-    raise ValueError(f"--inertia does not apply to a {type(scene).__name__} scene")
+        body = RigidBody(np.asarray(inertia, scene.y0.R.dtype))
+    try:
+        return scene.with_inertia(body)
+    except ValueError as err:
+        raise ValueError(f"--inertia: {err}") from None
 
 
 def scene_inertia(scene) -> np.ndarray:

@@ -536,6 +536,22 @@ class Quadrotor(Scene):
     def sampled(self) -> bool:
         return self.control_period is not None
 
+    def with_inertia(self, body):
+        """The vehicle with another body (the control held at ``t = 0`` is sampled anew)."""
+        y0, v = self.y0, self.vehicle
+        return quadrotor(
+            v.mass,
+            body,
+            self.gains,
+            self.reference,
+            x0=y0.x[3:6],
+            v0=y0.x[6:9],
+            R0=y0.R[0],
+            Omega0=y0.x[0:3],
+            g=v.g,
+            control_period=self.control_period,
+        )
+
     def steps_per_hold(self, dt) -> int:
         """``control_period / dt``; ``ValueError`` unless ``dt`` divides the period.
 

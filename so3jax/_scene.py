@@ -64,6 +64,14 @@ class Scene(eqx.Module):
         """
         return self
 
+    def with_inertia(self, body: RigidBody) -> Scene:
+        """The scene rebuilt by its constructor around another body (same controller,
+        reference and initial state; what depends on the inertia is recomputed).
+
+        A `ValueError` for a scene that has no body inertia to replace.
+        """
+        raise ValueError(f"a {type(self).__name__} scene takes no other inertia")
+
     def fault(self, t: Array, y: LieState) -> Array | None:
         """Why a step from ``(t, y)`` fails, as a `Status` code (0: no cause known here).
 

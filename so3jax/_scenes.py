@@ -44,6 +44,9 @@ class FreeBody(MechanicalScene):
     body: RigidBody
     y0: LieState
 
+    def with_inertia(self, body):
+        return free_body(body, self.y0.R[0], self.y0.x)
+
 
 def free_body(inertia: ArrayLike | RigidBody, R0: ArrayLike, Omega0: ArrayLike) -> FreeBody:
     """The torque-free rigid body (Euler's equations with ``M = 0``).
@@ -134,6 +137,10 @@ class Tracking(MechanicalScene):
 
     def extra_rhs(self, t, y):
         return jnp.zeros_like(y.x[..., 3:])
+
+    def with_inertia(self, body):
+        y0 = self.y0
+        return tracking(body, self.controller, y0.R[0], y0.x[:3], y0.R[1], self.reference)
 
     def restarted(self, R0):
         if not self.controller.memory_size:
