@@ -29,11 +29,11 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.custom_derivatives import linear_call
 
 from . import _engine
 from ._integrators import AbstractLieSolver
 from ._integrators._diffrax import DiffraxLieAdaptiveSolver, diffrax_solver, lie_term
+from ._linear_call import linear_call
 from ._scene import Scene
 from ._so3 import _is_concrete
 from ._state import all_finite

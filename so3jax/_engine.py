@@ -112,11 +112,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
-from jax.custom_derivatives import SymbolicZero, linear_call
+from jax.custom_derivatives import SymbolicZero
 from jax.extend import core as jex_core
 
-from . import _scalarize as sc
+from . import _linear_call, _scalarize as sc
 from ._frames import Frame, FrameError, dense as frames_dense, frame_jvp
+from ._linear_call import linear_call
 from ._so3 import _mm, _mT, _vee
 
 try:  # frontend attributes on the ops traced inside (`_hoisted`)
@@ -2015,89 +2016,21 @@ class _Loop:
 # --------------------------------------------------------------------------
 
 
-def _register_linear_call_batching() -> bool:
-    """Give ``linear_call`` a batching rule: vmap its program and its transpose.
-
-    JAX (0.4 to 0.10 at least) has none, so ``vmap`` of a gradient through a
-    ``linear_call`` raises ``NotImplementedError``. The rule batches the
-    callee with every linear input and output batched, and its transpose (made
-    lazily, as JAX does) with the residuals batched as given and every
-    cotangent batched. Returns False when JAX's internals have moved (the
-    engine then falls back to plain autodiff of the array program).
-    """
-    try:
-        from jax._src import custom_derivatives as cd
-        from jax._src.interpreters import batching, partial_eval as pe
-    except ImportError:  # pragma: no cover - JAX internals moved
-        return False
-    p = getattr(cd, "linear_call_p", None)
-    if p is None or not hasattr(batching, "fancy_primitive_batchers"):  # pragma: no cover
-        return False
-    if p in batching.fancy_primitive_batchers:
-        return True
-
-    def hoist(closed):
-        if not closed.consts:
-            return closed, []
-        jaxpr = pe.convert_constvars_jaxpr(closed.jaxpr)
-        return jex_core.ClosedJaxpr(jaxpr, ()), list(closed.consts)
-
-    def rule(axis_data, args, dims, *, callee, transpose_thunk, num_callee_consts, num_res):
-        if all(d is None for d in dims):
-            # JAX calls a fancy batching rule even when no argument is batched (a vmap the
-            # call does not depend on: jacfwd's basis over a run's second derivative).
-            # Batching every output there broadcast them over that vmap, and JAX then
-            # batched the value of the custom_jvp around it: "got axis spec None but
-            # output was batched" under jacfwd of jacfwd.
-            params = dict(
-                callee=callee,
-                transpose_thunk=transpose_thunk,
-                num_callee_consts=num_callee_consts,
-                num_res=num_res,
-            )
-            return p.bind(*args, **params), [None] * len(callee.out_avals)
-        size = axis_data.size
-        n_pre = num_callee_consts + num_res
-        pre = [
-            x if d is None else batching.moveaxis(x, d, 0)
-            for x, d in zip(args[:n_pre], dims[:n_pre], strict=True)
-        ]
-        pre_b = [d is not None for d in dims[:n_pre]]
-        lin = [
-            batching.bdim_at_front(x, d, size)
-            for x, d in zip(args[n_pre:], dims[n_pre:], strict=True)
-        ]
-        callee_b, _ = batching.batch_jaxpr(callee, axis_data, pre_b + [True] * len(lin), True)
-        # linear_call evaluates its callee without consts: constants that batching
-        # introduced (broadcasts, iotas) become leading callee-const arguments.
-        callee_b, hoisted = hoist(callee_b)
-        res_b = pre_b[num_callee_consts:]
-        n_out = len(callee.out_avals)
-
-        @pe._memoize
-        def thunk():
-            t_jaxpr, t_consts = transpose_thunk()
-            in_b = [False] * len(t_consts) + res_b + [True] * n_out
-            t_b, _ = batching.batch_jaxpr(t_jaxpr, axis_data, in_b, True)
-            t_b, t_hoisted = hoist(t_b)
-            return t_b, [*t_hoisted, *t_consts]
-
-        out = p.bind(
-            *hoisted,
-            *pre,
-            *lin,
-            callee=callee_b,
-            transpose_thunk=thunk,
-            num_callee_consts=len(hoisted) + num_callee_consts,
-            num_res=num_res,
+def _linear_call_batches() -> bool:
+    """Whether so3jax's own batching ``linear_call`` primitive (`so3jax._linear_call`) is
+    available; where it is not, the engine runs its reference programs and says so once."""
+    if not _linear_call.AVAILABLE:  # pragma: no cover - a JAX release that moved the tables
+        warnings.warn(
+            "so3jax: this JAX release lacks the rule tables so3jax's linear_call primitive "
+            "needs (jax.interpreters.ad / batching / mlir); derivatives run as JAX's "
+            "autodiff of the array program (slower: the one-pass Jacobian and the discrete "
+            "adjoint are off)",
+            stacklevel=2,
         )
-        return out, [0] * len(out)
-
-    batching.fancy_primitive_batchers[p] = rule
-    return True
+    return _linear_call.AVAILABLE
 
 
-_HAVE_LINEAR_CALL_BATCHING = _register_linear_call_batching()
+_HAVE_LINEAR_CALL_BATCHING = _linear_call_batches()
 
 
 # --------------------------------------------------------------------------
