@@ -10,15 +10,13 @@ is, with no flag for the user to know:
   CPU the array programs (this one and small batches') cut their derivative rules,
   chains of updates and the Runge-Kutta stages that later stages read where XLA
   would recompute them in every element of their consumers
-  (`so3jax._scalarize.array_cut_index`; a gradient over 16 seed runs 1.7x faster);
-- **a batch under ``vmap``** of 16 runs or more executes the scalarized
+  (`so3jax._scalarize.array_cut_index`);
+- **a batch under ``vmap``** of `BATCHED_LAYOUT` runs or more executes the scalarized
   program (`so3jax._scalarize`): every scalar component of the carry is its
   own contiguous ``(B,)`` array and a step is a few hundred small elementwise
   kernels (a structure-of-arrays layout); a smaller batch runs the array
-  program, vmapped (faster there: `BATCHED_LAYOUT`). On a GPU the threshold is
-  32768 runs for runs and 16384 for their one-pass Jacobians (`GPU_LAYOUT`): below
-  it the array program, which compiles 3 to 5x faster, saves more in compile
-  there than it loses in 100 calls. The switch is a
+  program, vmapped. On a GPU the thresholds are `GPU_LAYOUT`'s: below them the
+  array program, which compiles faster. The switch is a
   `jax.custom_batching.custom_vmap` rule, so nested ``vmap`` (gains x
   attitudes) and ``vmap`` inside ``jit`` take it. On CPU the
   rule also hands the program an unbatched index
@@ -26,26 +24,24 @@ is, with no flag for the user to know:
   recompute shared values once per consumer (`so3jax._scalarize.fusion_cut`);
 - **every loop, on a CPU**, compiles as one kernel (`_hoisted`): XLA's runtime
   otherwise dispatches each fused kernel of a step on its own and hands them between
-  the threads of its pool (S46: the seed's batched forward pass over 256 runs
-  2.9x faster, a single run 3.5x to 3.75x, a gradient over 256 runs 2.5x). Loops
+  the threads of its pool. Loops
   with a dot or another primitive XLA's older emitter refuses, batches whose largest
   leaf exceeds `HOIST_MAX_BYTES`, sharded programs and second derivatives' programs
   run as before (``SO3JAX_HOIST_LOOPS=0`` turns it off; so does a jaxlib outside
   `HOIST_VERIFIED`, the releases tested). The array layout's derivative
   programs are hoisted with their small reductions written out term by term
-  (`_unrolled`: S47, a single run's gradient 3.7x to 3.95x faster);
+  (`_unrolled`);
 - **a differentiated run** hangs its derivatives on one ``jax.custom_jvp``.
   Through at most `FORWARD_JACOBIAN_MAX` differentiated scalars (two gains,
   six per-axis gains, gains and initial rates) the run computes its value and
   its Jacobian in **one pass**: the primal once, the unit tangents batched over
   it as columns (`_Loop.jac_array` / `_Loop.jac_scalar`, scalarized for
-  batches of 16 runs or more, with the columns the outer axis of every tangent
+  large batches, with the columns the outer axis of every tangent
   component: `_columns_outside`; on a CPU a large batch runs in tiles of a few
   dozen runs whose values stay in cache, `BATCH_TILE`). In the scalarized layout a
   rotation's tangent is three numbers, ``xi`` in ``dR = R hat(xi)``, not nine
-  (`so3jax._frames`, `FRAME_TANGENTS`, S52: a column of the seed's Jacobian program
-  has 25 % fewer operations, the gradient over 256 runs 0.83x-0.89x the time);
-  a step that gives a dense tangent (LGVI) keeps nine. The tangent is that Jacobian times the input
+  (`so3jax._frames`, `FRAME_TANGENTS`); a step that gives a dense tangent (LGVI)
+  keeps nine. The tangent is that Jacobian times the input
   tangent: ``jacfwd`` reads the columns, and ``grad`` is JAX's transpose of
   the contraction, with nothing stored per step beyond the saved points and
   nothing recomputed. Through more scalars (DiffTune's twelve gains) both modes
@@ -53,43 +49,36 @@ is, with no flag for the user to know:
   ``sqrt(n_steps)`` steps under `jax.checkpoint`), transposed by JAX in
   reverse mode, whose memory grows like ``sqrt(n_steps)``. JAX transposes it
   with symbolic zeros for the observations a cost does not use and prunes
-  their backward pass; a custom transpose (`jax.custom_derivatives.linear_call`,
-  as ``program="adjoint"`` has) receives dense zeros and cannot: the gradient
-  of DiffTune's loss (12 gains, 1000 steps) took 90-119 ms that way against
-  57 ms, and compiled in 11.6 s against 7.3 s (2026-11-25).
+  their backward pass, which a custom transpose (``program="adjoint"``) cannot.
   ``program="autodiff"`` is JAX's own derivative of the checkpointed array
   program throughout (the reference).
 
 Second derivatives (``jax.hessian``, ``jvp`` of ``grad``, and higher) differentiate
 the programs the rules run: each is a `_dual`, whose own derivative is JAX's ``jvp``
 of the array program for one run and, under ``vmap``, the ``jvp`` of the program a batch
-runs (scalarized from 32 runs on a CPU: ``BATCHED_LAYOUT["jvp"]``; a Jacobian
-program's with its columns outside the runs, as the program itself), behind a
-``linear_call`` whose transpose runs that program once per unit tangent through at most
+runs (``BATCHED_LAYOUT["jvp"]``; a Jacobian program's with its columns outside the
+runs, as the program itself), behind a ``linear_call`` (`so3jax._linear_call`) whose
+transpose runs that program once per unit tangent through at most
 `FORWARD_JACOBIAN_MAX` scalars (`_transpose_by_columns`) and is JAX's transpose of the
 array program through more; the value beside it is the `_dual` itself (`_dual_jvp`).
 
 ``program="adjoint"`` runs the engine's tangent program in forward mode (a scan
-of ``jax.jvp`` of one step, scalarized for 16 runs or more; it carries tangents
-only for the leaves that can have one, `_tangent_masks`: with the gains
-differentiated, the reference attitude, time and status stay out) and makes
-reverse mode a **discrete adjoint** whatever the number of inputs (a backward scan of ``jax.vjp`` of
-one step and its observation, with the states recomputed from checkpoints every
-``K ~ sqrt(n_steps)`` steps), exact to round-off against plain autodiff. JAX ships
-no batching rule for ``linear_call``; `_register_linear_call_batching` adds one,
-so ``vmap(grad(...))`` and ``jacfwd`` work through it. Both derivative programs
-exist in the scalarized layout too (`BATCHED_LAYOUT`). The tangent and Jacobian
-programs take it for batches of 16 runs or more, with fusion cuts (``jacfwd`` of the
-mean cost over 256 seed starts: 7.5x faster than JAX's ``jvp`` of the array
-program). The adjoint stays in the array layout:
-XLA on CPU takes minutes to compile the scalarized one (the scalarized adjoint
-step of the seed has about 9400 scalar operations: 24 s to compile unbatched,
-100 s under ``vmap``, against about 3 s for the forward step). See
-``benchmarks/README.md`` for the measured ratios.
+of ``jax.jvp`` of one step; it carries tangents only for the leaves that can have one,
+`_tangent_masks`: with the gains differentiated, the reference attitude, time and
+status stay out) and makes reverse mode a **discrete adjoint** whatever the number of
+inputs (a backward scan of ``jax.vjp`` of one step and its observation, with the
+states recomputed from checkpoints every ``K ~ sqrt(n_steps)`` steps), exact to
+round-off against plain autodiff. The linear maps with a custom transpose are
+so3jax's own primitive (`so3jax._linear_call`), which batches, so ``vmap(grad(...))``
+and ``jacfwd`` work through it; JAX's rule tables are left as they are. Both
+derivative programs exist in the scalarized layout too (`BATCHED_LAYOUT`). The
+adjoint stays in the array layout: XLA on CPU compiles the scalarized adjoint step
+(thousands of scalar operations) far more slowly than it runs.
 
 Every program exists in both layouts (array and scalarized); a step with a
 primitive the scalarizer does not handle (a loop, dynamic indexing) runs the
-array program in every case, with a warning.
+array program in every case, with a warning. The design and its measurements:
+``docs/engine.md`` and ``docs/performance.md``.
 
 References: A. Griewank, A. Walther, *Evaluating Derivatives*, SIAM 2008
 (the vector forward mode of the one-pass Jacobian and discrete adjoints, ch. 3;
@@ -506,18 +495,11 @@ def checkpoint_length(n_steps: int) -> int:
 #: below that) and cuts its fusion (`so3jax._scalarize.fusion_cut`, CPU only) from ``c``
 #: runs on; ``None`` never. ``"scalar"`` and ``"array"`` are ``program="scalar"`` and
 #: ``"array"`` (benchmarks); ``"jvp"``: the programs of second derivatives (`_dual_jvp`).
-#: Measured on the 2-core CPU with each loop one kernel (S47: seed, RKMK4,
-#: `expected_cost`, 1000 steps, float64, array / scalarized with cuts / without), forward
-#: pass: 2 runs 1.35 / 0.9 ms, 8 runs 4.3 / 2.5 ms, 16 runs 8.3-8.7 / 2.2 / 7.8 ms,
-#: 32 runs 16.0 / 3.2 / 12.5 ms, compiled in 2.0 / 2.4-2.6 s at 16 runs; ``grad`` (the
-#: Jacobian program) 2 runs 2.7 / 2.1 ms, 8 runs 10.5 / 6.2 ms, 16 runs 20.0 / 5.2-5.5 /
-#: 33.1 ms, 32 runs 39.3 / 8.1 / 61.9 ms, compiled in 5.0-5.2 / 7.5-8.0 s at 8 and 16 runs.
-#: From 16 runs the scalarized programs run 3.7x to 3.9x faster, which pays for their
-#: longer compile within some 60 forward passes and 180 gradients; below, a few hundred.
-#: ``jax.hessian`` over 16 runs: 170 ms (compiled in 11.1 s) with the ``"jvp"`` programs
-#: in the array layout, 177 ms (20.3 s) scalarized: they stay so below 32 runs. Before
-#: S46 (loops not hoisted) the array programs led up to 32 runs (64 for the forward
-#: pass's cuts).
+#: Each entry is where the scalarized program pays for its longer compile within the
+#: calls a sweep or a `tune` makes, on a 2-core CPU with each loop one kernel; the
+#: second derivatives' programs stay in the array layout below 32 runs, where they
+#: compile faster and run as fast. Measured by ``benchmarks/layouts.py`` (tables in
+#: ``docs/performance.md``).
 BATCHED_LAYOUT = {
     "run": (16, 16),
     "scalar": (1, 64),
@@ -530,67 +512,37 @@ BATCHED_LAYOUT = {
 
 #: On a GPU, the entries that differ from `BATCHED_LAYOUT` (the others are the CPU's).
 #: A GPU is latency bound in either layout up to a few thousand runs, and there the
-#: scalarized program compiles 3 to 5x longer (9 to 20 s against 2 to 7 s) than the
-#: array program: each entry scalarizes from where 100 calls with their compile take
-#: less time than the array program's (S49).
-#: ``"run"``: scalarized from 32768 runs. Seed runs, RKMK4, scalarized / array:
-#:   2048 runs, 100 steps: 0.89x (float32) and 1.13x (float64) the array program's speed
-#:   on S30's H100 and 1.02x / 1.10x on S31's H200, compiled in 8.6 to 9.3 s against 1.4
-#:   to 2.2 s; 4096 runs, float32, 100 steps (S41's H100): 4.4 / 5.3 ms, compiled in
-#:   14.4 / 2.0 s (the scalarized program pays back after 13000 calls);
-#:   `expected_cost`'s forward pass, float64, 1000 steps (S49's H100, `layouts.py
-#:   --derivatives`): 4096 runs 52.6 / 64.7 ms, compiled in 13.1 / 2.4 s (100 calls
-#:   18.4 / 8.9 s); 32768 runs 64.3 / 138.9 ms, 11.3 / 3.2 s (100 calls 17.7 / 17.1 s);
-#:   2^20 runs, float32, 100 steps: 7.6x to 8.4x faster (S30 to S49).
-#: Until S49 runs were scalarized from 4096. Cuts are CPU only
-#: (`so3jax._scalarize.cut_index`).
-#: ``"jacobian"`` (``grad`` / ``jacfwd`` through a few scalars): scalarized from 16384
-#: runs (4096 until S49), where a `tune` of 100 iterations (its default) breaks even.
-#: Seed runs, `expected_cost`, 1000 steps, float64, ``grad`` scalarized / array
-#: (``jacfwd`` within 1 % of it, compile within 3 s):
-#:   256 runs (S41's H100, `layouts.py --check`): 79.3 / 95.5 ms, compiled in 17.2 / 7.1 s;
-#:   4096 runs (S49's H100, `layouts.py --derivatives`): 95.7 / 136.8 ms, 20.0 / 5.7 s;
-#:   32768 runs (S49): 159.8 / 432.2 ms, 15.1 / 6.3 s.
-#: So 100 gradients with their compile take 29.6 / 19.4 s at 4096 runs and 31.1 / 49.5 s
-#: at 32768; fitting each program's time as linear in the runs puts the two level near
-#: 15000 runs (unmeasured between). The scalarized program pays back after some 630
-#: calls at 256 runs, 350 at 4096 and 32 at 32768.
-#: ``"jvp"`` (second derivatives, `_dual_jvp`): scalarized from 4096 runs, unmeasured
-#: there. With the array program at 256 runs S49's H100 ran ``jax.hessian`` of that cost
-#: in 199 ms (3.5x the forward pass) after 17.5 s of compile; S41's, scalarized, 212 ms
-#: after 18.2 s.
+#: scalarized program compiles several times longer than the array program: each entry
+#: scalarizes from where 100 calls with their compile take less time than the array
+#: program's. ``"run"``: from 32768 runs; ``"jacobian"`` (``grad`` / ``jacfwd`` through a
+#: few scalars): from 16384 runs, where a `tune` of 100 iterations (its default) breaks
+#: even; ``"jvp"`` (second derivatives, `_dual_jvp`): from 4096 runs. Cuts are CPU only
+#: (`so3jax._scalarize.cut_index`). Measured by ``benchmarks/layouts.py`` on the GPUs
+#: named in ``benchmarks/results/layouts-*gpu*.json``.
 GPU_LAYOUT = {"run": (32768, None), "jacobian": (16384, None), "jvp": (4096, None)}
 
 #: `so3jax.sweep`'s runs per chunk when none is given, per device: ``"cpu"`` 1024 (a
 #: 2-core CPU is throughput bound from a few hundred runs; larger chunks only cost
-#: memory), ``"gpu"`` 65536 (latency bound: each chunk's 1000 steps take about the same
-#: time at 1024 runs as at 65536). On S32's H200 the seed's 65,536 runs x 1000 steps
-#: (float64) took 11.5 s in 64 chunks of 1024 and 0.30 s in one of 65536 (38x). A GPU
-#: chunk is cut below 65536 where its saved points would fill more than half the
-#: device's memory (`sweep_chunk`).
+#: memory), ``"gpu"`` 65536 (latency bound: each chunk's steps take about the same
+#: time at 1024 runs as at 65536; ``benchmarks/sweep.py``). A GPU chunk is cut below
+#: 65536 where its saved points would fill more than half the device's memory
+#: (`sweep_chunk`).
 SWEEP_CHUNK = {"cpu": 1024, "gpu": 65536}
 
 
 #: Whether `so3jax.sweep` steps its chunks as the scalarized program when the caller
 #: leaves ``scalarize`` to it, per platform. CPU: yes (several times faster in batches).
-#: GPU: no. Seed sweep of 65,536 runs x 1000 steps in one chunk on S36's H100
-#: (`benchmarks/sweep.py` with and without ``--array``): the compiled sweep ran 0.30 /
-#: 0.28 s scalarized against 0.44 / 0.30 s (float64 / float32), but a first sweep,
-#: compile of the chunk and of its re-runs included, took 23.4 / 19.4 s scalarized against
-#: 11.5 / 6.0 s. The array program pays for itself unless a process sweeps the same
-#: program some 85 times (float64; 790 in float32).
+#: GPU: no: the compiled sweep runs about as fast in either layout, and the array
+#: program compiles several times faster, so it pays unless a process sweeps the same
+#: program many times (``benchmarks/sweep.py`` with and without ``--array``).
 SWEEP_SCALARIZE = {"cpu": True, "gpu": False}
 
 
 #: XLA's options for the programs the library compiles itself (`so3jax.tune`'s iteration:
 #: `jit_own`), per platform. CPU: LLVM's ``-O2`` instead of XLA's default ``-O3``, which
-#: compiles the hoisted loops (`_hoisted`) 0.1 to 1.2 s faster and runs the scalarized
-#: programs of 16 to 32 runs 15 to 30 % faster, those of the array layout below 16 runs 3
-#: to 10 % slower. Whole seed `tune` calls (100 iterations, 1000 steps, 2-core CPU, S48):
-#: 1 start 4.57-4.62 against 4.72-4.78 s, 4 starts 6.11-6.45 against 6.70-6.80 s, 16
-#: starts 8.56-8.68 against 9.50-9.74 s (4000 steps 10.5 against 11.9 s), 32 starts
-#: 9.61-9.67 against 10.66-11.02 s, 64 starts 9.61-9.70 against 9.71-10.11 s, 256 starts
-#: level (15.0-15.2 s); DiffTune's quadrotor (12 gains, 4000 steps) level within 3 %.
+#: compiles the hoisted loops (`_hoisted`) faster and runs the scalarized programs of
+#: small batches faster, at a small cost to the array layout below 16 runs; whole `tune`
+#: calls are faster or level (``benchmarks/tune.py``).
 #: A level the caller names in ``XLA_FLAGS`` wins (the test suite's 0).
 OWN_COMPILER_OPTIONS = {"cpu": {"xla_backend_optimization_level": 2}}
 
@@ -651,8 +603,7 @@ def sweep_chunk(devices, n_saved: int, itemsize: int) -> int:
     as many runs as keep ``n_saved`` saved points of every run (48 numbers each, of
     ``itemsize`` bytes) within half the smallest device's memory (16 GiB where a device
     does not say), and at least `SWEEP_CHUNK` ``["cpu"]``. The peak memory of a seed
-    chunk was 33 to 34 numbers a saved point (S32, H200: 65536 runs x 1001 points took
-    16.1 GiB in float64, 8.3 GiB in float32); 48 leaves room for a quadrotor's state.
+    chunk is about 34 numbers a saved point; 48 leaves room for a quadrotor's state.
     """
     devices = list(devices)
     if devices[0].platform == "cpu":
@@ -672,25 +623,16 @@ def sweep_chunk(devices, n_saved: int, itemsize: int) -> int:
 #: On a CPU, a batch of these programs runs in tiles, one tile after the other
 #: (`_in_tiles`), each of about this many values per scalar component: a tile of ``m``
 #: runs of a Jacobian program with ``n`` columns holds ``m (1 + n)`` (the primal and its
-#: tangents). A tangent column reads many materialized values per operation (S48), and
+#: tangents). A tangent column reads many materialized values per operation, and
 #: a tile's stay in the core's cache where a whole batch's do not. Batches run in
 #: ``round(runs / m)`` tiles for ``m`` the power of 2 nearest ``192 / (1 + n)``, each a
-#: multiple of `TILE_MULTIPLE` runs (from 96 runs for the seed's two gains). Seed mean
-#: cost over 256 starts (RKMK4, 1000 steps, 2-core CPU, S50, fresh processes, min of
-#: 15): ``grad`` through the two gains 61.3-61.7 ms in tiles of 64 against 74.5-75.7 ms
-#: whole (32: 64.6-67.6, 128: 64.4-67.2); through six per-axis gains 135.6-145.8 ms in
-#: tiles of 32 against 185.0-189.2 ms whole (16: 162-165, 24: 155-159, 64: 154-171);
-#: through one, level (128: 41.7-42.7, 64: 42.5-45.3, whole 44.6-46.1 ms). The forward
-#: pass over 256 runs gains nothing from tiles (per run 0.075 ms at 64 runs, 0.072 at
-#: 256); forward tiles for larger batches are measured in `benchmarks/README.md`, not kept.
+#: multiple of `TILE_MULTIPLE` runs (from 96 runs for the seed's two gains). The forward
+#: pass gains nothing from tiles. Measured by ``benchmarks/layouts.py``.
 BATCH_TILE = {"jacobian": 192}
 
 #: Tiles only for runs that observe at most this many scalars per saved point (a cost's
 #: integrand, not a whole trajectory): where the saved points and their columns dominate,
-#: tiles did not pay. ``grad`` of a cost on the seed's trajectories over 256 starts
-#: (``R``, ``Rd``, ``Omega``, ... saved every step): 166.6 against 164.0 ms (the last
-#: point used) and 208.6 against 200.1 ms (every point), with 158 against 123 MiB and 176
-#: against 141 MiB of XLA temp memory (S50).
+#: tiles do not pay and cost memory.
 TILE_MAX_OBSERVED = 8
 
 #: Tiles are a multiple of this many runs (a vector register's float64 lanes with
@@ -760,16 +702,15 @@ def _dual(
       inside another transform's ``vmap`` or partial evaluator returned tangents
       batched unlike their primals or unknown primals ("Custom JVP rule must
       produce primal and tangent outputs with corresponding shapes",
-      "Linearization failed to produce known values") (S40).
+      "Linearization failed to produce known values").
     - **Bound whole under ``grad``.** When ``grad`` linearizes the engine's
       ``custom_jvp`` rule, JAX runs that rule under its partial evaluator, whose
       ``scan`` and ``cond`` rules partially evaluate a loop even when all its
       inputs are known. The programs the rule runs on primals have only known
       inputs, but under ``vmap`` their scalarized loop bodies were partially
-      evaluated anyway, and their fusion cuts hoisted out of the loop: the
-      gradient of the mean cost over 256 seed starts lowered in 5.7 s against
-      3.3 s, and compiled in 11.2 s against 8.3 s. A ``custom_jvp`` call whose
-      inputs are all known is bound whole (``JaxprTrace.process_custom_jvp_call``).
+      evaluated anyway, and their fusion cuts hoisted out of the loop (longer to
+      lower and to compile). A ``custom_jvp`` call whose inputs are all known is
+      bound whole (``JaxprTrace.process_custom_jvp_call``).
     """
 
     @jax.custom_jvp
@@ -790,28 +731,21 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     For the forward, tangent and Jacobian programs, the value is a `_dual` of the same
     programs (scalarized under a ``vmap`` of 16 runs or more, `BATCHED_LAYOUT`) and the
     tangent a ``linear_call`` (`_linear_tangent`) whose program is the ``jvp`` of the
-    program `_dual` would run, itself a `_dual` (``"jvp"``). ``jax.hessian`` of the mean
-    cost over 256 seed starts took 0.68 s that way against 4.8 s through the array
-    program (2-core CPU, S41). Integer outputs (a run's status) get their ``float0``
-    zeros outside the ``linear_call``. Until S42 the value was the array program's
-    (a `_dual` had broken third derivatives with a ``vmap`` inside, before S41's
-    ``linear_call`` fix below), so ``jax.jvp`` of ``grad`` over 256 seed starts, the
-    gradient beside its Hessian-vector product, took 1.95 s against 0.72 s now. The
-    other programs, and the ``"jvp"`` programs themselves (third derivatives): JAX's
-    ``jvp`` of the array program (`_array_jvp`).
+    program `_dual` would run, itself a `_dual` (``"jvp"``): a batch's second
+    derivatives run the batch's program, not the array program's. Integer outputs (a
+    run's status) get their ``float0`` zeros outside the ``linear_call``. The other
+    programs, and the ``"jvp"`` programs themselves (third derivatives): JAX's ``jvp``
+    of the array program (`_array_jvp`).
 
-    S40 reverted this design: ``jacfwd`` of ``jacfwd`` of one run failed. The cause was
-    the ``linear_call`` batching rule, which JAX calls under every ``vmap`` in scope, the
-    inner ``jacfwd``'s basis too, and which batched every output even with nothing
-    batched; JAX then batched this rule's value with its tangent (S41: the rule now
-    leaves such a call unbatched).
+    The ``linear_call``'s batching rule (`so3jax._linear_call`) leaves a call with
+    nothing batched unbatched: JAX calls it under every ``vmap`` in scope (the inner
+    ``jacfwd``'s basis of ``jacfwd`` of ``jacfwd`` too), and batching its outputs there
+    would batch this rule's value with its tangent.
 
     ``settle(primals, leaves, t_leaves, nz) -> (t_leaves, nz)`` (`_dual`'s, the Jacobian
     program's `_settle_jacobian_tangents`) starts the loop's carry tangents that a step
     makes nonzero with zeros, so that JAX differentiates and batches each loop of the
-    ``jvp`` programs once: ``jax.hessian`` of the mean cost over 256 seed starts lowered
-    in 8.1 s against 9.3 s (S42, the value's `_dual` included; run and compile times as
-    before).
+    ``jvp`` programs once (shorter to lower; the same run and compile times).
     """
     if what not in ("run", "tangent", "jacobian") or not _HAVE_LINEAR_CALL_BATCHING:
         return _array_jvp(array_fn, primals, tangents)
@@ -943,11 +877,9 @@ def _transpose_by_columns(linear: Callable, cts, shapes: list, real: list) -> li
     (under `jax.lax.map`: one program for all columns), each contracted with ``cts``.
     The arrays not flagged get zero cotangents: only zeros ever enter there.
 
-    Reverse over reverse of a run through a few gains (S42, 2-core CPU, seed, 1000
-    steps): ``jax.jacrev(jax.jacrev(cost))`` of the mean cost over 256 starts took 0.99 s
-    a call against 11.3 s through JAX's transpose of the array program (it runs the
-    scalarized ``jvp`` program twice), and compiled in 18 s against 32 s; one run through
-    2 scalars 67 against 188 ms, through 7 scalars 364 against 435 ms.
+    Reverse over reverse through a few gains (``jax.jacrev(jax.jacrev(cost))``) runs
+    this way several times faster, and compiles faster, than JAX's transpose of the
+    array program (`benchmarks/tune.py`'s Hessian rows).
     """
     zeros = [jnp.zeros(s.shape, s.dtype) for s in shapes]
     cols = _unit_columns(_pick(real, zeros))
@@ -976,7 +908,7 @@ def _array_jvp(array_fn: Callable, primals, tangents):
     unbatched what no batched input moves. Without `_batched_with` and `_front`,
     ``jax.hessian`` of the mean cost over a batch of starts raised "Cannot
     concatenate arrays with shapes that differ in dimensions other than the one
-    being concatenated" (S40).
+    being concatenated".
     """
     leaves, treedef = jax.tree.flatten(primals)
     t_leaves, nz = _tangent_leaves(tangents)
@@ -1179,8 +1111,6 @@ def _columns_outside(runs: Callable, args, in_batched, in_cols: list, out_cols: 
     code does not vectorise well. Here one column at a time runs under ``runs``, and
     the columns are a ``vmap`` around it: tangent components are ``(n, B)``, the
     primal stays ``(B,)`` and is computed once (it does not depend on the tangents).
-    The gradient of the mean cost over 256 seed starts (two gains, 1000 steps) ran
-    1.2x faster, ``jacfwd`` 1.25x (S44).
     """
     leaves, treedef = jax.tree.flatten(args)
     flags = jax.tree.leaves(in_batched)
@@ -1241,10 +1171,9 @@ def _component_flags(example, batched) -> list:
 SCAN_UNROLL = 1
 
 #: The jaxlib releases (major, minor) on which the whole test suite passes with the
-#: loops hoisted (`HOIST_LOOPS`): 0.10.2, 0.11.2 and 0.12.0.1 (S49). On another,
-#: hoisting stays off unless asked for: XLA's older emitter aborts the process, not
-#: raises, where it cannot compile a hoisted loop (as 0.11 and 0.12 did before S49's
-#: fix in `_hoisted`).
+#: loops hoisted (`HOIST_LOOPS`): 0.10, 0.11 and 0.12. On another, hoisting stays off
+#: unless asked for: XLA's older emitter aborts the process, not raises, where it
+#: cannot compile a hoisted loop.
 HOIST_VERIFIED = frozenset({(0, 10), (0, 11), (0, 12)})
 
 
@@ -1267,18 +1196,17 @@ def _hoist_default() -> bool:
 
 
 #: Run the engine's loops as one kernel each on a CPU (`_hoisted`). ``False`` gives
-#: XLA's default: one kernel per fusion, handed between the threads of its pool, 2.5x
-#: to 3.75x slower (S46). On by default only on a jaxlib of `HOIST_VERIFIED`. The
-#: environment variable ``SO3JAX_HOIST_LOOPS`` (read at import) overrides that: ``0``
-#: should XLA's older emitter refuse a loop of some scene (a compile error naming a
-#: fusion kind, or an abort), ``1`` to try hoisting on another jaxlib.
+#: XLA's default: one kernel per fusion, handed between the threads of its pool,
+#: several times slower (``benchmarks/emitters.py``). On by default only on a jaxlib of
+#: `HOIST_VERIFIED`. The environment variable ``SO3JAX_HOIST_LOOPS`` (read at import)
+#: overrides that: ``0`` should XLA's older emitter refuse a loop of some scene (a
+#: compile error naming a fusion kind, or an abort), ``1`` to try hoisting on another
+#: jaxlib.
 HOIST_LOOPS = _hoist_default()
 
 #: The largest input leaf of a hoisted loop, in bytes, over the runs of a batch: one
-#: kernel gives up XLA's threads, which pay for large batches. Seed forward pass,
-#: 2-core CPU (2026-11-27), hoisted against not: float64, 8192 runs (64 kB a leaf)
-#: 922 against 1336 ms; 16384 runs 528 against 471 ms; 65536 runs 1980 against 1062
-#: ms; float32, 16384 runs (64 kB) 183 against 250 ms; 65536 runs 813 against 459 ms.
+#: kernel gives up XLA's threads, which pay for large batches: past 64 kB a leaf the
+#: hoisted loop is slower than XLA's threaded one (``benchmarks/emitters.py``).
 #: Under nested ``vmap`` (gains x attitudes by hand) only the innermost batch that
 #: reaches the engine's batching rule counts: `so3jax.sweep` runs one flat batch per chunk.
 HOIST_MAX_BYTES = 64 * 1024
@@ -1294,9 +1222,8 @@ def _tracing(what: str, runs: int = 1):
     """Trace program ``what`` (a `_dual`'s) in a batch of ``runs`` runs.
 
     - Nothing is hoisted inside the ``"jvp"`` programs of second derivatives
-      (`_dual_jvp`), nor in what they trace. Hoisted, ``jax.hessian`` of the seed's mean
-      cost over 16 starts ran in 78 against 157 ms but compiled in 19.4 against 8.3 s
-      (38.0 against 16.6 s over 256 starts, 418 against 645 ms a call).
+      (`_dual_jvp`), nor in what they trace: hoisted, ``jax.hessian`` runs faster but
+      compiles more than twice as long, which a second derivative rarely repays.
     - Only forward runs hoist loops with reductions; a derivative program's are written
       out first (`_unrolled`). A derivative program's loop can be batched again after
       `_hoisted` chose, by a ``vmap`` around a derivative JAX staged (no Python of ours
@@ -1332,7 +1259,7 @@ _HOISTABLE = frozenset(
 #: The most elements a reduction in a hoisted loop may read, over the batch. Past 1024,
 #: XLA fuses a reduction into a kind of kernel its older emitter does not implement
 #: ("Fusion kind not implemented on CPU"): the array program's 3x3 products, sums over
-#: ``(B, 3, 3, 3)`` arrays, compiled hoisted for 37 runs and failed for 38 (2026-11-27).
+#: ``(B, 3, 3, 3)`` arrays, compile hoisted for 37 runs and fail for 38.
 HOIST_MAX_REDUCED = 1024
 
 
@@ -1402,12 +1329,10 @@ def _unrolled(closed):
     A batched loop's reductions grow with its batch, and XLA fuses a reduction over
     more than `HOIST_MAX_REDUCED` elements into a kernel its older emitter does not
     implement. Written out, the loop holds none, whatever batch a later ``vmap``
-    gives it: so the derivative programs of the array layout can be hoisted (the
-    seed's gradient over 1000 steps, a single run 6.1-6.2 against 1.45-1.6 ms, 16 runs
-    31-33 against 19-20 ms, 2026-11-27; compiled in 4.8 against 2.3 s at 16 runs). A
-    forward program keeps its reductions while they fit `HOIST_MAX_REDUCED`: written
-    out, a single run took 1.15 against 0.76 ms. Past it they are written out too: the
-    array program forced over 256 runs took 149 ms so, 199 ms not hoisted.
+    gives it: so the derivative programs of the array layout can be hoisted, which
+    makes them several times faster. A forward program keeps its reductions while
+    they fit `HOIST_MAX_REDUCED` (written out, they are slower there); past it they are
+    written out too, which is still faster than not hoisting.
     """
     if not _has_small_reduction(closed.jaxpr):
         return closed
@@ -1453,8 +1378,8 @@ def _eval_unrolled(jaxpr, consts, args) -> list:
     where only the reduction reads ``x`` and the producer is elementwise
     (`_TERMWISE`) or a broadcast, else sliced from ``x``: ``sum(A[:, :, None] *
     B[None], 1)`` becomes ``A[:, 0, None] * B[None, 0] + A[:, 1, None] * B[None, 1] +
-    ...``. Sliced after the product instead, XLA computed the product once in full
-    and the seed's gradient over 16 runs took 27.7 against 20.1 ms.
+    ...``. Sliced after the product instead, XLA computes the product once in full,
+    which is slower.
     """
     env = dict(zip(jaxpr.constvars, consts, strict=True))
     env.update(zip(jaxpr.invars, args, strict=True))
@@ -1538,8 +1463,8 @@ def _hoisted(loop: Callable, *args):
     tagged ``xla_cpu_small_call`` (and kept from inlining) is compiled whole into
     one function by XLA's older CPU emitter, as XLA's own small-loop pass does
     for loops under 1 kB (``xla_cpu_small_while_loop_byte_threshold``, a process
-    flag). The seed's forward pass over 256 starts took 19.3-19.5 against 55.7-57.3 ms
-    that way, a single run 0.80-0.88 against 2.94-2.97 ms (2026-11-27, 2-core CPU).
+    flag). That makes the seed's forward pass about three times faster, for a batch
+    and for a single run (``benchmarks/emitters.py``).
 
     The loop's inputs pass an `optimization_barrier` first: XLA otherwise sinks
     constant operands (a batch of starts closed over as a constant) into the call,
@@ -1549,7 +1474,7 @@ def _hoisted(loop: Callable, *args):
     (a loop's carry in an input's place, at the same offset, larger), and the older
     emitter then aborted the process (``Check failed:
     slice_to_buffer_table_index_.empty() || has_explicit_index``; the gradient of a
-    free body's run whose start was a constant of the jitted cost, S49). A loop that
+    free body's run whose start was a constant of the jitted cost). A loop that
     holds reductions where `_tracing` allows none (a derivative program's), or one
     over more than `HOIST_MAX_REDUCED` elements, is hoisted with its reductions written
     out (`_unrolled`) if that is all that stood in the way. Loops with a primitive
@@ -1591,9 +1516,8 @@ def _hoisted(loop: Callable, *args):
 
 #: The scalarized Jacobian program cuts the values its tangent columns consume
 #: (`so3jax._scalarize.COLUMN_CUT_CONE`) in batches of this many runs or more (a tile's).
-#: Seed gradient, 1000 steps, with those cuts against without (S53, 2-core CPU): 16 runs
-#: 4.58-4.67 against 4.23-4.39 ms, 32 runs 6.21-6.30 against 6.47-6.73 ms, 256 runs (4
-#: tiles of 64) at 4000 steps 168-173 against 182-190 ms; about 0.5 s more compile.
+#: Below that the cuts cost more than they save; from it on they are faster, for a
+#: little more compile time.
 COLUMN_CUTS_FROM = 32
 
 
@@ -2188,7 +2112,7 @@ def _batched_with(out, inputs):
     (the run's times, say, do not), so `_checkpointed_jvp` passes its outputs
     through here. Without it, ``jacfwd`` and ``grad`` of the mean of a ``vmap`` over
     the quadrotor's 12 gains raised "Cannot concatenate arrays with different
-    numbers of dimensions" (S39). The zeros are ``where(False, ...)``
+    numbers of dimensions". The zeros are ``where(False, ...)``
     (not ``0 * x``: an infinite input stays out of the values), which XLA folds.
     """
     srcs = [
@@ -2316,8 +2240,7 @@ def _jacobian_jvp(loop: _Loop, P, c0, nz: list, lin: list, mP: tuple, mc: tuple,
     ``elements`` (`_tangent_masks`) and the frame rules decide, per observation, what
     the loop saves (`_Loop.obs_kinds`): nothing where the tangent is zero (the
     reference attitude of a gain's derivative), three numbers a column for a rotation.
-    A seed trajectory's columns shrank from 25 numbers a point to 15, and the gradient
-    of a cost on 16 saved runs of 4000 steps ran 42 against 64 ms (S54).
+    A seed trajectory's columns take 15 numbers a point instead of 25.
     """
     pf, cf = _floats(P), _floats(c0)
     cols = _unit_columns(lin)
