@@ -64,10 +64,11 @@ def simulate(
     - `t0`: initial time.
     - `scalarize`: leave it at ``None``: the execution engine
       (`so3jax._engine`) runs a single trajectory as the array program and a
-      batch under ``vmap`` of 16 runs or more (4096 on a GPU) as the scalarized
-      program (every scalar component a contiguous batch array, a few fused
-      kernels per step: on CPU about 4x the array program's throughput at 2048
-      trajectories). Through up to 8 differentiated scalars it differentiates a
+      large batch under ``vmap`` (from `so3jax._engine.BATCHED_LAYOUT`'s threshold on a
+      CPU, `so3jax._engine.GPU_LAYOUT`'s on a GPU) as the scalarized program (every
+      scalar component a contiguous batch array, a few fused kernels per step;
+      ``benchmarks/throughput.py`` measures it). Through up to
+      `so3jax._engine.FORWARD_JACOBIAN_MAX` differentiated scalars it differentiates a
       run in one pass with its Jacobian's columns; through more, with JAX's
       ``jvp`` of the checkpointed array program. ``True`` / ``False`` force the scalarized /
       array forward program whatever the batching (for benchmarks); a step with
@@ -82,8 +83,8 @@ def simulate(
       tracking controller's memory is set for ``R0``). To run a batch of starts,
       ``vmap`` over these rather than over scenes with the start written into
       ``scene.y0``: the scene's reference attitude then stays unbatched, and a
-      batch integrates it once instead of once per run (about 1.4x faster for the
-      seed scenario on CPU).
+      batch integrates it once instead of once per run
+      (``benchmarks/shared_reference.py``).
 
     **Returns:** a `Trajectory` with ``n_steps // save_every + 1`` points and a
     `Status` saying whether the run stayed finite and where it stopped if not.
