@@ -98,13 +98,12 @@ def _errors(R, Omega, Rd, Omega_d):
 def _errors_and_rates(R, Rd, vs):
     """``e_R = 1/2 vee(Rd^T R - R^T Rd)`` and ``R^T Rd v`` for each ``v`` in ``vs``.
 
-    ``R^T Rd`` once, and each product with a vector once: until S44 the torque formed
-    ``R^T Rd Omega_d`` twice (for ``e_Omega`` and in the feedforward term), which the
-    scalarized programs did not merge: 15 operations per evaluation, per run and per
-    tangent column (the seed's batched forward pass over 256 runs 1.04x to 1.08x
-    faster without them). Forming ``R^T (Rd v)`` and six entries of ``Rd^T R``
-    instead, fewer operations on the run's state when a batch shares ``Rd``, measured
-    within noise there and made one run 1.15x slower: not kept.
+    ``R^T Rd`` once, and each product with a vector once: ``e_Omega`` and the
+    feedforward term both need ``R^T Rd Omega_d``, and the scalarized programs do not
+    merge two copies of it (15 operations per evaluation, per run and per tangent
+    column). Forming ``R^T (Rd v)`` and six entries of ``Rd^T R`` instead (fewer
+    operations on the run's state when a batch shares ``Rd``) gains nothing in a batch
+    and makes a single run slower (more, smaller kernels).
     """
     RtRd = _mm(_mT(R), Rd)
     return _vee(_mT(RtRd)), tuple(_mv(RtRd, v) for v in vs)

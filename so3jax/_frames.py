@@ -34,6 +34,7 @@ import numpy as np
 from jax.extend import core as jex_core
 
 from . import _scalarize as sc
+from ._so3 import _cross
 
 __all__ = ["Frame", "FrameError", "frame_jvp", "frame_rule", "dense", "right_or_zero"]
 
@@ -82,8 +83,6 @@ def dense(P, t):
     """The tangent ``t`` of ``P`` as an array (``None`` stays ``None``)."""
     if not isinstance(t, Frame):
         return t
-    from ._so3 import _cross  # `_so3` imports this module for its rules
-
     xi = t.xi.astype(jnp.result_type(P))
     if t.left:  # columns of hat(xi) P are xi x p_j
         return jnp.swapaxes(_cross(xi[..., None, :], jnp.swapaxes(P, -1, -2)), -1, -2)

@@ -492,11 +492,11 @@ def _parts(flat, shapes) -> list:
 #: seed batches: 6 to 10 run alike; 3 or 12 and more are slower for some methods.
 CUT_CONE = 8
 #: A value that tangent columns batched around the program consume (`_eval_with_cuts`'s
-#: ``columns``) is cut from this cone on. Measured on the seed's gradient over 256 runs
-#: (tiles of 64, two columns; S53), as element operations a step (XLA's instructions
-#: weighted by the elements their fusion computes) against 8-or-never: RKMK4 0.84x
-#: (4000 steps: 168-173 against 182-190 ms), CF4 0.87x, CG3 0.90x, LieEuler 0.80x; a
-#: threshold of 2 gave about the same, of 6 to 32 more work than none.
+#: ``columns``) is cut from this cone on. Counted on the seed's gradient over 256 runs
+#: (tiles of 64, two columns) as element operations a step (XLA's instructions weighted
+#: by the elements their fusion computes, `benchmarks/element_work.py`), a cone of 4
+#: does less work than no column cuts for RKMK4, CF4, CG3 and LieEuler; 2 about the
+#: same as 4, 6 to 32 more work than none.
 COLUMN_CUT_CONE = 4
 
 

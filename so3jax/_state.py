@@ -10,10 +10,11 @@ import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
 from ._frames import Frame, frame_rule
-from ._so3 import (
+from ._so3 import _cay_increment_raw
+from ._types import Array, Float
+from ._updates import (
     _cay_frame,
     _cay_increment,
-    _cay_increment_raw,
     _cay_update,
     _cay_update_jvp,
     _exp_frame,
@@ -22,7 +23,6 @@ from ._so3 import (
     _exp_update,
     _exp_update_jvp,
 )
-from ._types import Array, Float
 
 
 class LieState(eqx.Module):
@@ -67,7 +67,7 @@ def retract(y: LieState, u: Array, dx: Array, coords: str = "exp") -> LieState:
 def move(R: Array, u: Array, coords: str = "exp") -> Array:
     """``R exp(u)`` (or ``R cay(u)``), computed as ``R + increment(R, u)``.
 
-    Its derivative is one closed-form rule for the whole update (`so3jax._so3._exp_update`).
+    Its derivative is one closed-form rule for the whole update (`so3jax._updates._exp_update`).
     """
     return (_cay_update if coords == "cayley" else _exp_update)(R, u)
 

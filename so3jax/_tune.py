@@ -149,10 +149,9 @@ def _sum3(x):
 
     On arrays of saved points (a cost on a trajectory), XLA's CPU compiler hands
     ``jnp.sum`` over an axis of three, with everything that feeds it, to a library
-    reduction (YNNPACK), slower than the same sums as additions in one elementwise loop:
-    the integrand on random arrays shaped as 256 runs of 1001 points (S54) took 4.8
-    against 1.2 ms, its ``jvp`` in two directions 6.0 against 1.6 ms and its gradient
-    10.9 against 4.4 ms. In the scalarized loops both are the same additions.
+    reduction (YNNPACK), several times slower than the same sums as additions in one
+    elementwise loop, in the forward pass, its ``jvp`` and its gradient alike. In the
+    scalarized loops both are the same additions.
     """
     a, b, c = jnp.split(x, 3, axis=-1)  # (its transpose is one concatenation, where
     return (a + b + c)[..., 0]  # three slices transpose to three pads: 2.3x slower)
@@ -163,8 +162,8 @@ def _dot3(x, y):
 
     `_sum3` of ``x * y`` reads each product three times, so XLA's CPU compiler stores the
     products first: an array the size of the saved attitudes. Summed products are one
-    elementwise loop. A cost on 16 saved runs of 4000 steps needed 13.6 against 16.6 MiB
-    of temp memory (forward pass) and 28.3 against 32.3 MiB (its gradient), S55."""
+    elementwise loop, and needs less temp memory (a cost on saved runs, forward pass and
+    gradient alike)."""
     x0, x1, x2 = jnp.split(x, 3, axis=-1)
     y0, y1, y2 = jnp.split(y, 3, axis=-1)
     return (x0 * y0 + x1 * y1 + x2 * y2)[..., 0]
@@ -296,8 +295,7 @@ def _tracking_cost(traj: Trajectory, reference, weights, chunk_invariant: bool =
 def _trapezoid(f, t, chunk_invariant: bool = False):
     """``int f dt`` over the last axis by the trapezoid rule, as a product with the
     rule's weights: XLA compiles a ``dot`` where a sum of ``f``'s neighbours became one
-    library reduction with everything that computes ``f`` (`_sum3`; the forward pass of
-    the mean cost of 16 seed runs of 1000 steps: 3.2 against 4.1 ms, S54).
+    library reduction with everything that computes ``f`` (`_sum3`), which is slower.
 
     A ``dot`` of a batch (``vmap`` of a run's cost) rounds differently for different
     batch sizes; ``chunk_invariant`` sums the products instead, the same in every chunk
@@ -436,11 +434,10 @@ def _rollout(
 
     # Every step is a point: the integral is summed in the carry and nothing is
     # saved. A derivative then stores no column per step, and its memory does not
-    # grow with the horizon (the gradient over 256 runs and 4000 steps: 0.89x-0.93x the
-    # time of saving the points, see benchmarks/README.md). The carry holds the last
-    # point's integrand and adds each trapezoid whole, so the cost is linear in the
-    # final carry: a second derivative (``jax.hessian``) then needs no value of the
-    # Jacobian program beside its ``jvp`` (one loop where it had two, S54).
+    # grow with the horizon (it is faster too than saving the points: docs/engine.md).
+    # The carry holds the last point's integrand and adds each trapezoid whole, so the
+    # cost is linear in the final carry: a second derivative (``jax.hessian``) then needs
+    # no value of the Jacobian program beside its ``jvp`` (one loop, not two).
     def step_and_sum(P, carry):
         state, total, f = carry
         state = step(P, state)
@@ -628,9 +625,8 @@ def tune(
       (`jax.grad`) or ``"forward"`` (`jax.jacfwd`, one tangent per scalar,
       constant memory). With 2 or 6 gains both run the engine's one-pass
       Jacobian at about the same cost; through a dozen gains of one run
-      forward mode is about 2x faster and compiles in half the time (DiffTune's
-      12 quadrotor gains: 138 against 282 ms an iteration, see
-      ``benchmarks/README.md``).
+      (DiffTune's 12 quadrotor gains) forward mode is faster and compiles in less
+      time (``docs/engine.md``).
     - `progress`: show a tqdm progress bar.
 
     **General mode** (``cost`` given): any scene, any pytree of gains, any
@@ -764,9 +760,9 @@ def tune(
 
 
 #: `tune`'s ``gradient="auto"`` takes forward mode through at most this many tuned
-#: scalars. Measured on one run (S24, 2-core CPU, float64): forward mode was 2x faster
-#: than reverse through DiffTune's 12 quadrotor gains and level through the seed's 46
-#: scene floats; a backward pass pays only with many more parameters than that.
+#: scalars. On one run forward mode is faster than reverse through DiffTune's 12
+#: quadrotor gains and level through the seed's 46 scene floats; a backward pass pays
+#: only with many more parameters than that.
 FORWARD_MODE_MAX = 32
 
 _GRADIENTS = ("auto", "reverse", "forward")

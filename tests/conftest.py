@@ -9,14 +9,13 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 #: XLA settings for the suite's CPU compilations, which take most of its time:
 #:
 #: - XLA's CPU compiler has two code generators for fused kernels: the MLIR "fusion
-#:   emitters" (its default since 2025) and the older LLVM IR emitters. Measured on this
-#:   suite's 2-core CPU (2026-11-25), the older ones compile the library's programs 1.2 to
-#:   1.6x faster and run them as fast or faster (the suite: 6:35 against 9:36).
-#: - LLVM's optimisation level 0 instead of 3 (2026-11-26): the tests' programs run for
-#:   milliseconds, so optimising their machine code costs more than it saves. The whole
-#:   suite took 9:04 against 12:57 (each module 0.6 to 0.9x as long); the few tests that
-#:   run long enough for optimised code to pay ask for level 3 per program (the
-#:   million-step runs of ``test_integrators.py``: 37 s at level 0 against 20 s).
+#:   emitters" (its default) and the older LLVM IR emitters. On the suite's 2-core CPU the
+#:   older ones compile the library's programs faster and run them as fast or faster, so
+#:   the whole suite takes markedly less time (`benchmarks/emitters.py`).
+#: - LLVM's optimisation level 0 instead of 3: the tests' programs run for milliseconds,
+#:   so optimising their machine code costs more than it saves (every module takes less
+#:   time); the few tests that run long enough for optimised code to pay ask for level 3
+#:   per program (the million-step runs of ``test_integrators.py``).
 #:
 #: Every worker and notebook kernel inherits this process's XLA_FLAGS. A flag the jaxlib
 #: no longer knows is left out (JAX 0.11's XLA rejects the first); the caller's own
@@ -60,11 +59,11 @@ import pytest  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 #: Modules by their share of the suite's time (seconds summed over their tests on the 2-core
-#: CPU, 2026-11-26, with the XLA settings above), longest first. pytest-xdist's
+#: CPU, with the XLA settings above), longest first. pytest-xdist's
 #: ``--dist loadfile`` hands whole modules to its workers in collection order (with
 #: ``--no-loadscope-reorder``, set in pyproject.toml; by default it orders them by their
-#: number of tests), so the long ones start first and the short ones fill the end (on
-#: 2026-11-25 the workers finished 7 s apart; ordered by test count, 25 to 39 s apart).
+#: number of tests), so the long ones start first and the short ones fill the end, and the
+#: workers finish closer together than when ordered by test count.
 #: Unlisted modules go last.
 _MODULE_SECONDS = {
     "test_engine.py": 139,

@@ -339,10 +339,10 @@ def test_second_derivatives(free):
     forward) equals ``jacfwd`` of ``jacfwd`` through `diffrax.ForwardMode`, and so does
     reverse over forward (``jacrev`` of ``jacfwd``: the Jacobian program is a while loop,
     which JAX differentiates forward only, so its transpose runs by columns,
-    `_engine.forward_differentiated`; it raised JAX's "Reverse-mode differentiation does
-    not work for lax.while_loop" before S42); through all 30 floats the default
+    `_engine.forward_differentiated`, so JAX's "Reverse-mode differentiation does not
+    work for lax.while_loop" is never raised); through all 30 floats the default
     derivatives (a ``linear_call``) have first derivatives only, and a second one says
-    which adjoint to pass (it failed with a bare ``AssertionError``)."""
+    which adjoint to pass (not a bare ``AssertionError``)."""
 
     def rates(w, adjoint=None):
         sc = eqx.tree_at(lambda sc: sc.y0.x, free, w)

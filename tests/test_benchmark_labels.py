@@ -1,4 +1,4 @@
-"""The benchmark scripts measure what their labels say (S30's GPU run caught two that did not).
+"""The benchmark scripts measure what their labels say.
 
 Apart from `test_benchmarks.py`, whose quick runs share one xdist worker (`--dist loadfile`).
 """
@@ -39,9 +39,9 @@ def _jaxpr_size(fn, *args) -> int:
 def test_layouts_forces_the_array_program():
     """`layouts.layout("array")` changes the traced program, also after a default trace.
 
-    JAX caches the batched jaxpr of the jitted functions inside `simulate`: the S30 GPU
-    run's "array" rows were the default program because the table was edited without
-    clearing those caches. The forced layout must trace what ``scalarize=False`` traces.
+    JAX caches the batched jaxpr of the jitted functions inside `simulate`: editing the
+    table without clearing those caches leaves "array" rows running the default program.
+    The forced layout must trace what ``scalarize=False`` traces.
     """
     import jax
 

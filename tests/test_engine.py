@@ -139,8 +139,8 @@ SEED_METHOD = s.LieEuler()
 
 def test_adjoint_on_the_seed():
     """The seed (gains, controller, reference): the discrete adjoint, and the tangent
-    program that ``program="adjoint"`` runs in forward mode (since S27 the default runs
-    neither: through more than 8 scalars it is JAX's own ``jvp``), equal autodiff."""
+    program that ``program="adjoint"`` runs in forward mode (the default runs neither:
+    through more than 8 scalars it is JAX's own ``jvp``), equal autodiff."""
     ref = _jit_grad(_traj_cost("autodiff", SEED_METHOD))(K0)
     assert _rel(_jit_grad(_traj_cost("adjoint", SEED_METHOD))(K0), ref) < 1e-10
     assert _rel(jax.jit(jax.jacfwd(_traj_cost("adjoint", SEED_METHOD)))(K0), ref) < 1e-10
@@ -326,14 +326,13 @@ def test_second_derivatives_equal_autodiff(n, monkeypatch):
     """``jax.hessian`` and the other second (and third) derivatives of runs, jitted or
     not, single or batched (3 runs: the array layout; 40: scalarized), equal JAX's
     autodiff of the checkpointed array program. The engine's rules run their programs
-    on primals; differentiating them again failed before S40 ("Custom JVP rule must
+    on primals, and differentiating them again must not raise ("Custom JVP rule must
     produce primal and tangent outputs with corresponding shapes", "Linearization
-    failed to produce known values", and "Cannot concatenate" under a jitted batch).
-    ``jacfwd`` of ``jacfwd`` and ``jvp`` of ``jacfwd`` of a jitted run broke a faster
-    variant for large batches (benchmarks/README.md, "Second derivatives (S40)"): JAX
-    called the ``linear_call`` batching rule under a ``vmap`` nothing in the call
-    depended on, which batched every output (S41). Through few scalars a batch of 40
-    differentiates its one-pass Jacobian program scalarized (`_engine._dual_jvp`)."""
+    failed to produce known values", or "Cannot concatenate" under a jitted batch).
+    ``jacfwd`` of ``jacfwd`` and ``jvp`` of ``jacfwd`` of a jitted run break when the
+    ``linear_call`` batching rule batches every output under a ``vmap`` nothing in the
+    call depends on (docs/engine.md, "Second derivatives"). Through few scalars a batch
+    of 40 differentiates its one-pass Jacobian program scalarized (`_engine._dual_jvp`)."""
     p = jnp.linspace(1.3, 0.7, n)
     u = jnp.linspace(-1.0, 1.0, n)
     scalarized = []
@@ -463,7 +462,7 @@ def test_reverse_over_reverse_transposes_by_columns(monkeypatch):
 def test_linear_call_under_a_vmap_it_does_not_depend_on():
     """JAX calls `_register_linear_call_batching`'s rule under every ``vmap`` in scope,
     also one no argument of the call is batched over; the rule must then leave the
-    outputs unbatched (it batched them all before S41, so ``out_axes=None`` raised)."""
+    outputs unbatched (batched, ``out_axes=None`` raises)."""
     p = jnp.linspace(1.3, 0.7, 2)
     g = jax.grad(lambda q: _toy_second(q, "adjoint", False))
     ref = g(p)
@@ -484,10 +483,8 @@ def test_adjoint_program_second_derivatives_raise_clearly():
 
 def test_batched_programs_are_traced_once(monkeypatch):
     """Under ``vmap`` the array programs are traced once per call: the ``custom_vmap`` and
-    its batching rule share one jaxpr (`_engine._dual`). Before S34 the rule traced each
-    again under its ``vmap`` (for ``grad`` of the seed's mean cost over 16 starts, 2.2 s of
-    the 3.9 s it took to lower; batching the first trace's jaxpr instead is cheaper, though
-    side by side the lowering gained less than that)."""
+    its batching rule share one jaxpr (`_engine._dual`), rather than the rule tracing it
+    again under its ``vmap``: batching the first trace's jaxpr is cheaper."""
     traced = {"fwd_array": 0, "jac_array": 0}
     for name in traced:
         original = getattr(_engine._Loop, name)
@@ -574,7 +571,7 @@ def test_batched_array_loops_are_batched_once(monkeypatch):
 
 def test_scan_split_reads_loop_operands_and_unknown_loops_fall_back(monkeypatch):
     """`sc.scan_split` finds a loop's constants and carry (JAX 0.10 names the counts;
-    0.11 groups the operands instead, checked on a GPU machine's JAX 0.11.2 in S36).
+    0.11 groups the operands instead, checked on a GPU machine's JAX 0.11.2).
     Where it cannot read a loop (``None``, what a later JAX might give), ``vmap`` leaves
     that loop's batching to JAX: more batching passes, the same values."""
 
@@ -828,14 +825,14 @@ def test_jacobian_observation_kinds(monkeypatch):
     carry leaf), three numbers for a rotation (a right frame ``R hat(xi)``, a left one for
     ``R^T``), nine for anything else. ``grad`` and ``jacfwd`` of a cost on all of them
     equal autodiff: one run (array program) and 32 (scalarized)."""
-    from so3jax import _so3
+    from so3jax import _updates
 
     def step(P, c):
         R, w = c
         k, wd = P
         w1 = w - 0.05 * k * (w - wd) + 0.05 * jnp.cross(w, R[0, 2])
-        ref = _so3._rmul_exp(R[1], jnp.array([0.02, 0.0, -0.01]))  # moved by no input
-        return jnp.stack([_so3._rmul_exp(R[0], 0.05 * w1), ref]), w1
+        ref = _updates._rmul_exp(R[1], jnp.array([0.02, 0.0, -0.01]))  # moved by no input
+        return jnp.stack([_updates._rmul_exp(R[0], 0.05 * w1), ref]), w1
 
     def observe(P, c):
         R, w = c
@@ -1149,7 +1146,7 @@ def test_hoisted_loops_equal_the_default_runtime(runs, monkeypatch):
 def test_hoisted_call_returns_its_inputs(monkeypatch):
     """The call `_hoisted` makes returns its inputs after the loop's outputs, so they stay
     live to its end: on JAX 0.11 and 0.12 XLA otherwise gave an input's memory to a value
-    inside the loop, and its older emitter aborted the process (S49; CI's JAX 0.10 never
+    inside the loop, and its older emitter aborted the process (CI's JAX 0.10 never
     did, so this checks the program's form). Traces only."""
     monkeypatch.setattr(_engine, "HOIST_LOOPS", True)
     step = lambda P, c: jnp.tanh(P[0] * c + P[1])
@@ -1286,7 +1283,7 @@ def test_hoisting_can_be_turned_off_from_the_environment():
     """``SO3JAX_HOIST_LOOPS=0``: the way out should XLA's older emitter refuse a loop;
     ``1`` asks for hoisting on a jaxlib the suite has not passed on. Unset, loops are
     hoisted only on the jaxlib releases of `HOIST_VERIFIED` (a loop XLA's older emitter
-    cannot compile aborts the process, S49)."""
+    cannot compile aborts the process)."""
     import jaxlib
 
     code = "import so3jax._engine as e; print(e.HOIST_LOOPS)"

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import so3jax as s
-from so3jax import _control, _engine, _frames as F, _so3, _state, _tune
+from so3jax import _control, _engine, _frames as F, _state, _tune, _updates
 from so3jax._simulate import _simulate, engine_step, guarded_step, split_groups
 from so3jax._tune import with_gains, with_start
 
@@ -66,7 +66,7 @@ def test_update_rules_equal_jvp(update, dtype):
     a frame or zero and the increment's dense or zero, and the end of a step
     (`_state._advance`), at small and large angles."""
     tol = 1e-13 if dtype == jnp.float64 else 2e-5
-    move = _so3._exp_update if update == "exp" else _so3._cay_update
+    move = _updates._exp_update if update == "exp" else _updates._cay_update
     R = _rot(0, (2,)).astype(dtype)
     for scale in (1e-6, 0.3, 3.0):
         w = (scale * _vec(1, (2, 3))).astype(dtype)

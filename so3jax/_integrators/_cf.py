@@ -16,8 +16,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._so3 import _expm1, _mm, _rmul_exp
+from .._so3 import _mm
 from .._state import LieState
+from .._updates import _expm1, _rmul_exp
 from ._base import AbstractLieSolver, CFTableau, lincomb
 
 

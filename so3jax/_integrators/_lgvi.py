@@ -31,8 +31,9 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._scene import MechanicalScene
-from .._so3 import _cross, _det, _dot, _exp_increment, _hat, _mm, _mtv, _mv
+from .._so3 import _cross, _det, _dot, _hat, _mm, _mtv, _mv
 from .._state import LieState
+from .._updates import _exp_increment
 from ._base import AbstractLieSolver
 
 
