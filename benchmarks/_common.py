@@ -64,8 +64,7 @@ def engine_settings(**values):
     given entries; any other (``SCAN_UNROLL``) is set. JAX's caches are cleared on
     entry and exit: JAX caches the batched jaxpr of every jitted function inside
     `simulate`, so without clearing, a trace after the first reuses the first one's
-    settings whatever they now say (the S30 GPU run's "array" rows were the default
-    program for that reason).
+    settings whatever they now say (an "array" row would run the default program).
     """
     from so3jax import _engine
 

@@ -2,8 +2,8 @@
 
 The adaptive solvers (`so3jax.diffrax_solver` of `RKMK45`, `RKMKTsit5`, `RKMK32`) run
 stages 1 .. s-1 of a step as one `fori_loop` (`rkmk_stages_looped`), so the vector
-field is traced once a step; before S33 the stages were unrolled in Python
-(`rkmk_stages`, which the fixed-step methods still use). This script measures both,
+field is traced once a step; the alternative unrolls them in Python (`rkmk_stages`,
+which the fixed-step methods use). This script measures both,
 each in a fresh process (so no compiled program is shared), alternated over rounds:
 the seed scenario over 10 s at ``rtol = atol = 1e-7``, `SaveAt` at two times,
 `diffrax.RecursiveCheckpointAdjoint`:
@@ -12,7 +12,7 @@ the seed scenario over 10 s at ``rtol = atol = 1e-7``, `SaveAt` at two times,
 - ``value_and_grad`` of a scalar of the final state in the gains (k_R, k_Omega):
   trace + compile, then run (min of 5).
 
-A third variant, ``default`` (S38), runs the looped stages with ``adjoint=None``,
+A third variant, ``default``, runs the looped stages with ``adjoint=None``,
 the library's default derivatives: through two gains the one-pass Jacobian
 (`diffrax.ForwardMode`, the two unit tangents batched over one run) in place of
 JAX's transpose through `diffrax.RecursiveCheckpointAdjoint`.

@@ -4,10 +4,10 @@ XLA's compiled instructions (``compiled.as_text()``), each elementwise floating-
 operation weighted by the elements its fusion computes: a ``(64,)`` operation inside a
 fusion whose output is ``(2, 64)`` (a Jacobian's two tangent columns over a tile of 64
 runs) counts 128, since XLA computes it once per element of that output. Summed over the
-operations of the run-sized shapes, it is the work of one loop step: the seed gradient's
-over 256 runs came out at 2.83x its forward pass's before S53's column cuts and 2.39x
-after, where its time measured 2.8x and 2.5x. It needs no quiet machine, so it ranks
-fusion choices (`so3jax._scalarize.COLUMN_CUT_CONE`) where timings move by 10 %.
+operations of the run-sized shapes, it is the work of one loop step, and its ratios
+(the seed gradient's over 256 runs against its forward pass's, with and without column
+cuts) follow the measured times. It needs no quiet machine, so it ranks fusion choices
+(`so3jax._scalarize.COLUMN_CUT_CONE`) where timings move by 10 %.
 
 Writes ``results/element-work[-quick].json`` and ``.png`` (each variant's step work, split
 into the primal's operations, the tangent columns', and the primal's recomputed inside

@@ -5,14 +5,12 @@
 #
 #   bash benchmarks/gpu.sh OUT_DIR [SCALE [STEP ...]]
 #
-# SCALE=full (default) for the GPU sizes (on S30's H100 and S31's H200 leases these steps
-# took about 300 s, after a machine start of about 30 s; S32's run, with a sweep at a
-# chunk of 1024 runs since dropped, 390 s; S36's H100 360 s with both sweeps; S41's H100
-# 384 s, its tune step cut at 130 s one row short, so that step now has 160 s);
+# SCALE=full (default) for the GPU sizes (the default steps take about 400 s on an H100 or
+# H200, after a machine start; each step's limit below leaves room for its slowest row);
 # SCALE=smoke runs the same steps at CPU sizes (checks the plumbing here).
 # STEPs pick steps by name (default: the first five): throughput, tune, equal, sweep,
 # sweep-scalarized, and two more that are not run by default: hessian (`tune.py`'s two
-# Hessian variants at 256 runs, about 80 s on S41's H100) and derivatives (`layouts.py
+# Hessian variants at 256 runs, about 80 s on an H100) and derivatives (`layouts.py
 # --derivatives 4096`: the forward pass, `grad` and `jacfwd` at 4096 runs with the
 # engine's program and the array program forced).
 # `layouts.py` (about 220 s on the H100) is a second call when time is left. Results:
@@ -60,8 +58,8 @@ step equal "${lim[2]}" "equal accuracy" $tp --out "$res/tp" --equal-only \
   --variants "RKMK4 default" "RKMK4-cayley scalarized" "RKMKTsit5-cayley scalarized"
 step sweep "${lim[3]}" "gain sweep" $py "$here/sweep.py" --out "$res/sweep" --chunk-size $chunk $q
 # The same sweep forced scalarized (`sweep(..., scalarize=True)`): on a GPU `sweep` runs
-# the array program (S36, H100: a first 65,536-run sweep 11.5 s against 23.4 s, float64;
-# the compiled one 0.44 s against 0.30 s); this keeps both columns measured.
+# the array program (a first sweep, compile included, takes less time that way; a compiled
+# one more: `so3jax._engine.SWEEP_SCALARIZE`); this keeps both columns measured.
 step sweep-scalarized "${lim[3]}" "gain sweep, scalarized program" $py "$here/sweep.py" \
   --out "$res/sweep-scalarized" --chunk-size $chunk --scalarized $q
 step hessian "${lim[4]}" "Hessian" $py "$here/tune.py" $q --out "$res/hessian" --batches $hb \

@@ -10,10 +10,10 @@ side by side in one process:
   steps of 0.01 s, body-steps per second, per method, batch and dtype;
 - derivatives: the forward pass, ``jax.grad`` and ``jax.jacfwd`` (what `tune` takes
   by default for a few gains, ``gradient="auto"``) of the mean tracking cost (`expected_cost`,
-  RKMK4, dt = 1e-2, 1000 steps) with respect to (k_R, k_Omega). These rows (``--check``)
-  decided S41's `GPU_LAYOUT["jacobian"]`: on S41's H100 at 256 runs the scalarized
-  program ran ``jacfwd`` in 79.1 ms after 20.1 s of compile, the array program in
-  95.4 ms after 6.5 s, so a GPU now runs the array program below 4096 runs.
+  RKMK4, dt = 1e-2, 1000 steps) with respect to (k_R, k_Omega). These rows (``--check``,
+  ``--derivatives``) set `GPU_LAYOUT["jacobian"]`: on a GPU the scalarized program runs
+  faster per call but compiles several times longer, so it takes over only from the
+  batch size where 100 calls with their compile take less time.
 
 Writes ``results/layouts[-check][-<backend>][-quick].json`` (a ``.partial.json`` as it goes).
 

@@ -16,8 +16,8 @@ the two in fresh processes, so the JSON has both columns from one run.
 ``--persistent-cache`` adds a column with JAX's persistent compilation cache on
 (``JAX_COMPILATION_CACHE_DIR``, a fresh temporary folder, every program stored): one
 fresh process per entry fills it, then the timed processes read it, as a notebook
-does after a kernel restart. (A program with a host callback is not stored: since S31
-a ``dt`` given as a number no longer adds one.)
+does after a kernel restart. (A program with a host callback is not stored; a ``dt``
+given as a number adds none.)
 
 Writes ``results/startup[-quick].json`` and ``.png``.
 

@@ -8,7 +8,7 @@
    (arguments + outputs + temporaries). Batch 1 to 65536 (``--quick``: 8). A
    method's name is its default program; ``"RKMK4 array"`` forces the array
    program and ``"RKMK4 scalarized"`` (and the other variants below) the
-   scalarized one (before S30 the sweep's ``"RKMK4"`` was the array program).
+   scalarized one.
 2. *Equal accuracy*: 4096 seed trajectories (``--quick``: 64, RKMK4 only) of 10 s, each
    method at the step count (diffrax Tsit5: the tolerance) that reaches final
    attitude error 1e-8 on the seed initial condition (calibrated in the same
@@ -97,7 +97,7 @@ VARIANTS = {
 
 
 #: Extra sweep labels: the array program forced (``scalarize=False``). In the sweep a
-#: method's plain name (``"RKMK4"``) is the default program; before S30 it was this one.
+#: method's plain name (``"RKMK4"``) is the default program.
 SWEEP_VARIANTS = {"RKMK4 array": (s.RKMK4, False)}
 #: The labels the sweep looks up before the method names (none of them a method's name).
 SWEEP_LABELS = {k: v for k, v in {**VARIANTS, **SWEEP_VARIANTS}.items() if k not in LIE}

@@ -7,22 +7,21 @@ engine (`so3jax._engine`):
 - forward pass: the default program (scalarized under `vmap`), the baseline;
 - forward pass, array program (``program="array"``);
 - reverse (default): with two gains, the engine's one-pass Jacobian (the primal once,
-  the two unit tangents batched over it; scalarized for 32 runs or more), whose
+  the two unit tangents batched over it; scalarized in large batches), whose
   contraction with the input tangent JAX transposes;
 - reverse, nine-number attitude tangents: the default with the Jacobian program's
   attitude tangents carried as nine numbers (``dR``), not three (``xi``, ``dR = R
-  hat(xi)``, `so3jax._frames`; the engine before S52);
+  hat(xi)``, `so3jax._frames`);
 - reverse, checkpointed: JAX's transpose of the checkpointed array program
-  (``program="autodiff"``, memory ~ sqrt(n); the default before S19);
+  (``program="autodiff"``, memory ~ sqrt(n));
 - reverse, discrete adjoint: the engine's own backward scan of ``jax.vjp`` of
   one step from checkpoints (``program="adjoint"``);
 - reverse, no checkpoints (JAX's transpose, memory ~ n);
 - forward mode (default, `jax.jacfwd`, 2 tangents): the same one-pass Jacobian;
 - forward mode, JAX's ``jvp`` of the checkpointed array program
-  (``program="autodiff"``; the default before S19);
+  (``program="autodiff"``);
 - Hessian (default, `jax.hessian`: forward over reverse, 2 x 2): the ``jvp`` of the
-  engine's one-pass Jacobian program, scalarized from 32 runs (S41; the array layout
-  throughout in S40);
+  engine's one-pass Jacobian program, scalarized from 32 runs;
 - Hessian, JAX's autodiff of the checkpointed array program (``program="autodiff"``).
 
 For each: run time (min over repeats, compiled), compile time, and XLA's temp
@@ -80,7 +79,7 @@ VARIANTS = [
 
 class nine_numbers:
     """``fn`` traced with the Jacobian programs' attitude tangents carried as nine numbers
-    (``_engine.FRAME_TANGENTS`` off: the engine before S52), for the side-by-side row."""
+    (``_engine.FRAME_TANGENTS`` off), for the side-by-side row."""
 
     def __init__(self, fn):
         self.fn = fn

@@ -1,8 +1,8 @@
 """Unrolled step loops (`lax.scan`'s ``unroll``) under ``vmap``, on whatever backend runs it.
 
 On a GPU a batched run of a few thousand trajectories is latency bound: each
-iteration of the step loop costs tens of microseconds whatever the batch
-(S30's H100: 29 to 48 us a step at 2048 to 4096 runs). Unrolling the loop runs
+iteration of the step loop costs tens of microseconds whatever the batch (an
+H100 at 2048 to 4096 runs). Unrolling the loop runs
 ``u`` steps per iteration. `so3jax._engine.SCAN_UNROLL` sets it at trace time;
 this script sets it per row (clearing JAX's caches around each, as the layout
 is), side by side in one process:
@@ -110,11 +110,11 @@ def main():
         for B in batches:
             R0s = s.random_rotation(jax.random.key(0), (B,), dtype=jnp.float32)
             # "RKMK4 default": the engine's choice ("RKMK4" in `T.VARIANTS` is the array
-            # program; S31's H200 rows ran it under both settings for that reason).
+            # program, which would run under both settings).
             fn = T.runner("RKMK4 default", scene, 0.01, n)
             # The array program (vmapped) at the smaller batches: it compiles in a fraction
-            # of the scalarized program's time, and at a few thousand runs S30's H100 ran
-            # it within 12 % of the default.
+            # of the scalarized program's time, and at a few thousand runs a GPU runs it
+            # about as fast as the default.
             for lay in ("default", "array") if B <= 65536 else ("default",):
                 for u in args.unroll:
                     r = timed(fn, R0s, u, reps, lay)

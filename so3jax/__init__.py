@@ -36,6 +36,7 @@ from ._integrators import (
     diffrax_solver as diffrax_solver,
     lie_term as lie_term,
 )
+from ._plan import Plan as Plan, explain as explain
 from ._quadrotor import (
     CircleReference as CircleReference,
     FigureEightReference as FigureEightReference,
@@ -144,6 +145,8 @@ __all__ = [
     "Status",
     "Trajectory",
     "simulate",
+    "explain",
+    "Plan",
     "adjoint",
     "attitude_error_function",
     "bracket",

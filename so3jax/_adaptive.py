@@ -30,7 +30,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from . import _engine
+from . import _engine, _plan
 from ._integrators import AbstractLieSolver
 from ._integrators._diffrax import DiffraxLieAdaptiveSolver, diffrax_solver, lie_term
 from ._linear_call import linear_call
@@ -130,9 +130,10 @@ def simulate_adaptive(
     **Returns:** a `Trajectory` at the saved times whose `extras` also hold
     ``num_steps``, ``num_accepted_steps``, ``num_rejected_steps`` and
     ``num_fevals`` (vector-field evaluations, counted from the tableau). The
-    status code is 1 when the state stopped being finite or diffrax failed
-    (e.g. ``max_steps`` reached); its step is then the number of accepted
-    steps, and the saved points not reached are NaN.
+    status code is 3 when ``max_steps`` ran out before ``t1`` and 1 when the state
+    stopped being finite or diffrax failed otherwise; its step is then the number of
+    accepted steps, and the saved points not reached are NaN. Under ``jit`` / ``vmap``,
+    input that was bad before the first step has its own code (`Status`).
 
     References: H. Munthe-Kaas, Appl. Numer. Math. 29 (1999) 115–127;
     E. Hairer, S. P. Nørsett, G. Wanner, *Solving Ordinary Differential
@@ -184,7 +185,7 @@ def simulate_adaptive(
     return mark_bad_input(traj, code0)
 
 
-@eqx.filter_jit
+@_plan.jit
 def _simulate_default(args, max_steps: int):
     """The run with the engine's derivatives (module docstring); jitted, so that an
     eager call pays for building them once."""
@@ -293,7 +294,7 @@ def _jacobian(run, xs):
     return out, dout
 
 
-@eqx.filter_jit
+@_plan.jit
 def _simulate_adaptive(scene, solver, t0, t1, ts, rtol, atol, dt0, max_steps: int, adjoint):
     observe = lambda t, y, args: scene.observe(t, y)
     saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts, fn=observe), diffrax.SubSaveAt(t1=True)])

@@ -29,11 +29,11 @@ from __future__ import annotations
 from typing import ClassVar
 
 import diffrax
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _plan
 from ._scene import Scene
 from ._so3 import _hat, _is_concrete, _mm, _project
 from ._state import LieState, all_finite
@@ -287,7 +287,7 @@ def simulate_ambient(
     return _adaptive(scene, solver, t0, t1, ts, rtol, atol, dt0, max_steps, project, adjoint)
 
 
-@eqx.filter_jit
+@_plan.jit
 def _fixed(scene, solver, dt, t0, n_save: int, save_every: int, project: bool) -> Trajectory:
     term = diffrax.ODETerm(_ambient_field)
     y0 = scene.y0
@@ -339,7 +339,7 @@ def _fixed(scene, solver, dt, t0, n_save: int, save_every: int, project: bool) -
     return _trajectory(t, {**obs, **stats}, Status(code=code, step=bad), y)
 
 
-@eqx.filter_jit
+@_plan.jit
 def _adaptive(scene, solver, t0, t1, ts, rtol, atol, dt0, max_steps: int, project: bool, adjoint):
     term = diffrax.ODETerm(_ambient_field)
     inner = _ProjectedSolver(solver) if project else solver

@@ -104,7 +104,7 @@ from jax.custom_batching import custom_vmap
 from jax.custom_derivatives import SymbolicZero
 from jax.extend import core as jex_core
 
-from . import _linear_call, _scalarize as sc
+from . import _linear_call, _plan, _scalarize as sc
 from ._frames import Frame, FrameError, dense as frames_dense, frame_jvp
 from ._linear_call import linear_call
 from ._so3 import _mm, _mT, _vee
@@ -716,9 +716,15 @@ def _dual(
     @jax.custom_jvp
     def call(*args):
         with _tracing(what):
-            closed, shape = jax.make_jaxpr(array_fn, return_shape=True)(*args)
+            with _plan.deferred() as pending:  # kept only if no batch replaces this trace
+                closed, shape = jax.make_jaxpr(array_fn, return_shape=True)(*args)
             traced = _Traced(closed, jax.tree.structure(shape))
-            return _dual_of(traced, scalar_fn, what, columns)(*args)
+            before = _plan.count()
+            out = _dual_of(traced, scalar_fn, what, columns)(*args)
+            if not _plan.noted_since(before, "layout"):
+                _plan.extend(pending)
+                _plan.note("layout", program=what, runs=1, layout="array")
+            return out
 
     rule = functools.partial(_dual_jvp, array_fn, scalar_fn, what, settle)
     call.defjvp(rule, symbolic_zeros=True)
@@ -747,6 +753,7 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     makes nonzero with zeros, so that JAX differentiates and batches each loop of the
     ``jvp`` programs once (shorter to lower; the same run and compile times).
     """
+    _plan.note("derivative", strategy="second derivative", program=what)
     if what not in ("run", "tangent", "jacobian") or not _HAVE_LINEAR_CALL_BATCHING:
         return _array_jvp(array_fn, primals, tangents)
     leaves, treedef = jax.tree.flatten(primals)
@@ -1032,6 +1039,7 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
             observed = sum(math.prod(y.shape[1:]) for y in ys)
         n, size = batch_tiles(what, axis_size, columns, observed)
         if n > 1:
+            _plan.note("tiles", program=what, runs=axis_size, n=n, size=size)
             return _in_tiles(_traced_rule, axis_size, n, size, in_batched, args)
         return _traced_rule(axis_size, in_batched, *args)
 
@@ -1043,6 +1051,13 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
         axes = tuple(jax.tree.map(lambda b: 0 if b else None, ib) for ib in in_batched)
         scalar_from, cut_from = batched_layout(what)
         if scalar_from is None or axis_size < scalar_from:
+            _plan.note(
+                "layout",
+                program=what,
+                runs=axis_size,
+                layout="array",
+                why=f"fewer runs than the scalarized layout's threshold {scalar_from}",
+            )
             out = array_fn.vmap(axis_size, in_batched, args)
             return out, jax.tree.map(lambda _: True, out)
         try:
@@ -1062,7 +1077,15 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
 
             cols = _jacobian_columns(args, array_fn.out_tree) if what == "jacobian" else columns
             out = runs(*args) if cols is None else _columns_outside(runs, args, in_batched, *cols)
-        except sc.ScalarizeError:
+            _plan.note("layout", program=what, runs=axis_size, layout="scalarized", cuts=cuts)
+        except sc.ScalarizeError as e:
+            _plan.note(
+                "layout",
+                program=what,
+                runs=axis_size,
+                layout="array",
+                why=f"the step cannot be scalarized: {e}",
+            )
             out = array_fn.vmap(axis_size, in_batched, args)
         return out, jax.tree.map(lambda _: True, out)
 
@@ -1488,20 +1511,31 @@ def _hoisted(loop: Callable, *args):
     """
     runs, hoist, reductions = _TRACING[-1]
     if set_xla_metadata is None or not HOIST_LOOPS or not hoist:
+        why = "off (HOIST_LOOPS)" if hoist else "a second derivative's loop"
+        _plan.note("hoisting", hoisted=False, runs=runs, why=why)
         return loop(*args)
     if not _one_cpu_device():
+        _plan.note("hoisting", hoisted=False, runs=runs, why="not a single CPU device")
         return loop(*args)
     leaves = jax.tree.leaves(args)
     per_run = max((jnp.size(x) * jnp.result_type(x).itemsize for x in leaves), default=0)
     if per_run * runs > HOIST_MAX_BYTES:
+        _plan.note("hoisting", hoisted=False, runs=runs, why="a leaf over HOIST_MAX_BYTES")
         return loop(*args)
     closed, shape = jax.make_jaxpr(loop, return_shape=True)(*args)
     hoisted = closed
     if not _hoistable(closed.jaxpr, runs, reductions) and _hoistable(closed.jaxpr, 0):
         hoisted = _unrolled(closed)  # only reductions stand in the way: write them out
     if not _hoistable(hoisted.jaxpr, runs, reductions):  # run the traced loop, not again
+        _plan.note(
+            "hoisting",
+            hoisted=False,
+            runs=runs,
+            why="a primitive or reduction XLA's older emitter refuses",
+        )
         outs = jex_core.jaxpr_as_fun(closed)(*leaves)
         return jax.tree.unflatten(jax.tree.structure(shape), outs)
+    _plan.note("hoisting", hoisted=True, runs=runs, unrolled=hoisted is not closed)
     consts, leaves = jax.lax.optimization_barrier((list(hoisted.consts), leaves))
 
     @jax.jit
@@ -2016,6 +2050,7 @@ def run(
         return obs_c(P[0], c, *P[2])
 
     loop = _Loop(step_p, obs_p, n_steps, save_every, K)
+    _plan.note("loop", n_steps=n_steps, save_every=save_every, program=program)
     if program == "autodiff":
         return loop.fwd_checkpointed(P, carry0)
     if program in ("auto", "adjoint") and _HAVE_LINEAR_CALL_BATCHING:
@@ -2048,6 +2083,14 @@ def _checkpointed_jvp(loop: _Loop, primals, tangents):
     """
     p_leaves, treedef = jax.tree.flatten(primals)
     t_leaves, nz = _tangent_leaves(tangents)
+    n = sum(math.prod(jnp.shape(t)) for t, z in zip(t_leaves, nz, strict=True) if z)
+    _plan.note(
+        "derivative",
+        strategy="checkpointed jvp",
+        scalars=n,
+        why=f"more than FORWARD_JACOBIAN_MAX = {FORWARD_JACOBIAN_MAX} scalars, or a "
+        "program that asks for JAX's derivative",
+    )
     t_leaves, nz = _settle_carry_tangents(loop.step, primals, p_leaves, t_leaves, nz)
     out, tan = _jvp_through(loop.fwd_checkpointed, treedef, p_leaves, t_leaves, nz)
     return _batched_with(out, primals), tan  # batched as the run's forward programs are
@@ -2181,11 +2224,20 @@ def _adjoint_run(loop: _Loop, P, carry0, reverse: str = "adjoint"):
         if reverse == "auto" and n_lin > FORWARD_JACOBIAN_MAX:
             return _checkpointed_jvp(loop, primals, tangents)
         if reverse == "auto":
+            _plan.note(
+                "derivative",
+                strategy="one-pass Jacobian",
+                scalars=n_lin,
+                why=f"at most FORWARD_JACOBIAN_MAX = {FORWARD_JACOBIAN_MAX} scalars",
+            )
             mP, mc, elements = _tangent_masks(
                 loop.step, P, c0, nz[: len(pf)], nz[len(pf) :], elements=True
             )
             return _jacobian_jvp(loop, P, c0, nz, lin, mP, mc, elements)
         mP, mc = _tangent_masks(loop.step, P, c0, nz[: len(pf)], nz[len(pf) :])
+        _plan.note(
+            "derivative", strategy="discrete adjoint", scalars=n_lin, why='program="adjoint"'
+        )
         out = fwd(P, c0)
         tan = _dual(
             functools.partial(loop.tan_array, mP, mc),

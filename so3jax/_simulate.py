@@ -6,6 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from . import _plan
 from ._adaptive import simulate_adaptive
 from ._engine import run
 from ._integrators import AbstractLieSolver
@@ -289,7 +290,7 @@ def engine_step(guarded):
     return step
 
 
-@eqx.filter_jit
+@_plan.jit
 def _simulate(
     scene,
     method,

@@ -57,6 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from . import _plan
 from ._engine import sweep_chunk, sweep_scalarize
 from ._integrators import RKMK4, AbstractLieSolver
 from ._quadrotor import Quadrotor, _restart, position_metrics
@@ -613,7 +614,7 @@ def _quadrotor_metrics(
     return out
 
 
-@eqx.filter_jit
+@_plan.jit
 def _run_chunk(
     scene,
     method,

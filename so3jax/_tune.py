@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
+from . import _plan
 from ._control import GeometricController, GeometricGains, _check_gain
 from ._engine import _jvp_through, jit_own, run
 from ._frames import Frame, frame_rule, right_or_zero
@@ -395,7 +396,7 @@ def _rollout_args(scene, method, dt, n_steps, weights, save_every, checkpoint_ev
     return method, dt, t0, weights, n_save, save_every, block
 
 
-@eqx.filter_jit
+@_plan.jit
 def _rollout(
     scene, method, dt, t0, weights, n_save: int, save_every: int, block, program="auto", R0=None
 ):

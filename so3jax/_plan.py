@@ -1,0 +1,151 @@
+"""What the engine executes for a call, and why: `explain`.
+
+The engine decides at trace time how a run executes (`so3jax._engine`): the layout of
+each program (the array program, or the scalarized one for a large batch), whether it
+runs in tiles or with fusion cuts, whether its loops compile as one kernel, and how it
+is differentiated (the one-pass Jacobian, JAX's ``jvp`` of the checkpointed program, or
+the discrete adjoint). Each decision point calls `note`; `explain` traces a function
+(no compilation, no run) with a recorder installed and returns what was noted.
+
+The recorder is a `contextvars.ContextVar`: nothing is recorded outside `explain`, and
+nothing is shared between threads.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import dataclasses
+import functools
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+
+_RECORDER: contextvars.ContextVar[list | None] = contextvars.ContextVar("so3jax_plan", default=None)
+
+
+def count() -> int:
+    """How many decisions are recorded so far (0 outside `explain`)."""
+    entries = _RECORDER.get()
+    return 0 if entries is None else len(entries)
+
+
+def noted_since(start: int, kind: str) -> bool:
+    """Whether a decision of ``kind`` was recorded after the first ``start``."""
+    entries = _RECORDER.get() or []
+    return any(e["kind"] == kind for e in entries[start:])
+
+
+@contextlib.contextmanager
+def deferred():
+    """Record the decisions taken inside into a list of their own (yielded; ``None``
+    outside `explain`), for `extend` to keep or for the caller to drop: the trace of a
+    program that a batch then replaces is not what runs."""
+    if _RECORDER.get() is None:
+        yield None
+        return
+    pending: list = []
+    token = _RECORDER.set(pending)
+    try:
+        yield pending
+    finally:
+        _RECORDER.reset(token)
+
+
+def extend(pending: list | None) -> None:
+    """Keep decisions recorded by `deferred`."""
+    entries = _RECORDER.get()
+    if entries is not None and pending:
+        entries.extend(pending)
+
+
+def note(kind: str, **details) -> None:
+    """Record one decision of the engine (a no-op outside `explain`)."""
+    entries = _RECORDER.get()
+    if entries is not None:
+        entries.append({"kind": kind, **details})
+
+
+def jit(fn: Callable) -> Callable:
+    """`equinox.filter_jit` of ``fn``, except under `explain`, which traces ``fn`` inline:
+    a jitted function whose trace is cached would not take its decisions again."""
+    jitted = eqx.filter_jit(fn)
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if _RECORDER.get() is not None:
+            return fn(*args, **kwargs)
+        return jitted(*args, **kwargs)
+
+    return call
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """The engine's decisions for one call, in the order they were taken.
+
+    **Fields:**
+
+    - `entries`: a list of dicts, each with a ``"kind"``:
+        - ``"loop"``: a fixed-step loop handed to the engine (``n_steps``,
+          ``save_every``, ``program``: the caller's choice, ``"auto"`` by default);
+        - ``"layout"``: how one program runs (``program``: ``"run"`` for the forward
+          run, ``"jacobian"`` for the one-pass Jacobian, ``"tangent"``,
+          ``"adjoint"``, ``"jvp"`` for second derivatives; ``runs``: the batch it
+          runs in, 1 for a single run; ``layout``: ``"array"`` or
+          ``"scalarized"``; ``tiles``: ``(n, size)``; ``cuts``: fusion cuts on);
+        - ``"derivative"``: how a run is differentiated (``strategy``:
+          ``"one-pass Jacobian"``, ``"checkpointed jvp"`` (JAX's autodiff of the
+          checkpointed array program), ``"discrete adjoint"`` or ``"second
+          derivative"``; ``scalars``: the differentiated scalars; ``why``);
+        - ``"tiles"``: a batch run in ``n`` tiles of ``size`` runs, one after the other;
+        - ``"hoisting"``: whether a loop compiles as one kernel on a CPU (``hoisted``,
+          ``why`` when not).
+    """
+
+    entries: list
+
+    def of(self, kind: str) -> list:
+        """The entries of one kind."""
+        return [e for e in self.entries if e["kind"] == kind]
+
+    def __str__(self) -> str:
+        if not self.entries:
+            return "no fixed-step loop ran through the engine"
+        lines = []
+        for e in self.entries:
+            details = ", ".join(f"{k}={v!r}" for k, v in e.items() if k != "kind")
+            lines.append(f"{e['kind']}: {details}")
+        return "\n".join(lines)
+
+
+def explain(fn: Callable, *args, **kwargs) -> Plan:
+    """What the engine will execute for ``fn(*args, **kwargs)``, and why.
+
+    ``fn`` is traced, not compiled or run (as `jax.make_jaxpr` does); so3jax's own
+    jitted entry points trace inline, so that every decision is taken again and
+    recorded. Pass ``fn`` itself, not ``jax.jit(fn)``: a jitted function that has run
+    before reuses its cached trace, and the plan would be empty. Use it to see why a
+    call is slow: which layout a batch runs in, and how a gradient is taken.
+
+    **Arguments:**
+
+    - `fn`: a function that runs so3jax (e.g. ``jax.grad`` of a cost, ``jax.vmap``
+      of `so3jax.simulate`).
+    - `args`, `kwargs`: its arguments (arrays, or `jax.ShapeDtypeStruct`).
+
+    **Returns:** a `Plan`; ``print(plan)`` lists the decisions.
+
+    **Example:**
+
+        plan = so3jax.explain(jax.grad(cost), gains)
+        print(plan)   # derivative: strategy='one-pass Jacobian', scalars=2, ...
+    """
+    entries: list = []
+    token = _RECORDER.set(entries)
+    try:
+        jax.make_jaxpr(lambda *a: fn(*a, **kwargs))(*args)
+    finally:
+        _RECORDER.reset(token)
+    return Plan(entries)
