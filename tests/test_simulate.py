@@ -1,6 +1,5 @@
 """Tests of `simulate`: saving, batching, dtypes, input errors, status, compilation."""
 
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
