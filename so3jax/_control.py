@@ -144,7 +144,7 @@ def _errors_tangent(RtRd, vs, dE, dvs, rotated, a=None):
     return out, (jnp.broadcast_to(de, out[0].shape).astype(out[0].dtype), tuple(das))
 
 
-@frame_rule("_errors_and_rates")
+@frame_rule(_errors_and_rates)
 def _errors_and_rates_frame(xs, ts):
     """`_errors_and_rates` with ``dR = R hat(xi)``, ``dRd = Rd hat(zeta)`` (`so3jax._frames`):
     ``dE = -hat(xi) E + E hat(zeta)``, so ``d(E v) = E v x ... = -xi x (E v) + E (zeta x v)

@@ -26,6 +26,7 @@ so the tangents equal JAX's to round-off.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from collections.abc import Callable
 
 import jax
@@ -62,18 +63,31 @@ class FrameError(ValueError):
         self.indices = tuple(indices)
 
 
-#: custom-JVP function name -> rule ``(xs, ts) -> (outs, touts)`` or ``None`` (no rule
-#: for these tangents: the caller densifies). ``ts`` entries: ``None`` (zero), an array,
-#: or a `Frame`.
+#: custom-JVP function (by `_source_of`) -> rule ``(xs, ts) -> (outs, touts)`` or ``None``
+#: (no rule for these tangents: the caller densifies). ``ts`` entries: ``None`` (zero), an
+#: array, or a `Frame`.
 _RULES: dict[str, Callable] = {}
 _DEBUG: list | None = None  # equations that densified a `Frame` (a test hook)
 
 
-def frame_rule(name: str):
-    """Register the `Frame` rule of the custom-JVP function called ``name`` in so3jax."""
+def _source_of(fn) -> str:
+    """Where a function is defined, as ``"name at file:line"``: the key of its rule.
+
+    A ``jax.custom_jvp`` holds its function in ``.fun``; JAX records the same string for
+    the equation that calls it (``DebugInfo.func_src_info``), so a rule belongs to the
+    one function defined there, whatever its name elsewhere.
+    """
+    f = inspect.unwrap(getattr(fn, "fun", fn))
+    code = f.__code__
+    return f"{f.__name__} at {code.co_filename}:{code.co_firstlineno}"
+
+
+def frame_rule(fn):
+    """Register the `Frame` rule of the custom-JVP function ``fn`` (a ``jax.custom_jvp``)."""
+    key = _source_of(fn)
 
     def register(rule):
-        _RULES[name] = rule
+        _RULES[key] = rule
         return rule
 
     return register
@@ -89,14 +103,11 @@ def dense(P, t):
     return _cross(P, xi[..., None, :])  # rows of P hat(xi) are p_i x xi
 
 
-def _custom_name(eqn) -> str | None:
-    """The name of the so3jax function behind a ``custom_jvp_call`` equation."""
+def _called(eqn) -> str | None:
+    """Where the function behind a ``custom_jvp_call`` equation is defined (`_source_of`)."""
     info = getattr(eqn.params.get("call_jaxpr"), "jaxpr", None)
     info = getattr(info, "debug_info", None)
-    src = getattr(info, "func_src_info", None) or ""
-    if "so3jax" not in src:
-        return None
-    return src.split(" ")[0]
+    return getattr(info, "func_src_info", None)
 
 
 def _is_float(aval) -> bool:
@@ -288,7 +299,7 @@ def _frame_eqn(eqn, xs, ts, uniform):
             return [o for o, _ in res], [t for _, t in res]
         return None, None
     if name == "custom_jvp_call":
-        rule = _RULES.get(_custom_name(eqn))
+        rule = _RULES.get(_called(eqn))
         k = eqn.params["num_consts"]
         if rule is None or any(t is not None for t in ts[:k]):
             return None, None

@@ -140,8 +140,8 @@ def _advance_cay(R, u, x, dx):
 
 _advance_exp.defjvp(functools.partial(_advance_jvp, "exp"), symbolic_zeros=True)
 _advance_cay.defjvp(functools.partial(_advance_jvp, "cayley"), symbolic_zeros=True)
-frame_rule("_advance_exp")(functools.partial(_advance_frame, "exp"))
-frame_rule("_advance_cay")(functools.partial(_advance_frame, "cayley"))
+frame_rule(_advance_exp)(functools.partial(_advance_frame, "exp"))
+frame_rule(_advance_cay)(functools.partial(_advance_frame, "cayley"))
 
 
 def increment(R: Array, u: Array, coords: str = "exp") -> Array:

@@ -196,7 +196,7 @@ def _integrand_of_jvp(primals, tangents):
     return _jvp_through(_integrand_raw, treedef, list(primals), list(tangents), nz)
 
 
-@frame_rule("_integrand_of")
+@frame_rule(_integrand_of)
 def _integrand_frame(xs, ts):
     """The integrand with ``dR = R hat(xi)`` (`so3jax._frames`), and ``dRd = Rd hat(zeta)``
     if the reference moves too: ``dPsi = (xi - zeta) . vee(Rd^T R)`` and ``d e_Omega =

@@ -126,7 +126,7 @@ def _frame_update(tR, tw, rotate, jacobian):
     return rotate(tR.xi) if tw is None else rotate(tR.xi) + jacobian(tw)
 
 
-@frame_rule("_exp_update")
+@frame_rule(_exp_update)
 def _exp_update_frame(xs, ts):
     """`_exp_update` with ``dR = R hat(xi)`` (`so3jax._frames`): ``R' = R exp(w)`` and
     ``xi' = exp(w)^T xi + J_r(w) dw = xi - A w x xi + B w x (w x xi) + J_r(w) dw``: about
@@ -151,7 +151,6 @@ def _exp_frame(R, w, tR, tw):
     return [out], [Frame(xi.astype(out.dtype))]
 
 
-@frame_rule("_cay_update")
 def _cay_update_frame(xs, ts):
     """`_cay_update` with ``dR = R hat(xi)``: ``xi' = cay(u)^T xi + c (du - u x du / 2)``,
     ``cay(u)^T xi = xi + c (u x (u x xi) / 2 - u x xi)``, ``c = 4 / (4 + |u|^2)``."""
@@ -227,6 +226,9 @@ def _cay_update(R: Array, u: Array) -> Array:
     """``R cay(u) = R + R (cay(u) - I)`` with one derivative rule for the whole update
     (as `_exp_update`)."""
     return R + _cay_increment_raw(R, u)
+
+
+frame_rule(_cay_update)(_cay_update_frame)
 
 
 @functools.partial(_cay_update.defjvp, symbolic_zeros=True)
