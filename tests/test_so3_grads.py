@@ -374,14 +374,14 @@ def test_random_rotation_vmap_over_keys():
 
 
 def _increment_pairs():
-    from so3jax import _so3 as S
+    from so3jax import _so3 as S, _updates as U
 
     return {
-        "exp_increment": (S._exp_increment, lambda R, w: S._mm(R, S._expm1_raw(w))),
-        "expm1": (lambda R, w: S._mm(R, S._expm1(w)), lambda R, w: S._mm(R, S._expm1_raw(w))),
-        "cay_increment": (S._cay_increment, S._cay_increment_raw),
-        "exp_update": (S._exp_update, lambda R, w: R + S._mm(R, S._expm1_raw(w))),
-        "cay_update": (S._cay_update, lambda R, u: R + S._cay_increment_raw(R, u)),
+        "exp_increment": (U._exp_increment, lambda R, w: S._mm(R, S._expm1_raw(w))),
+        "expm1": (lambda R, w: S._mm(R, U._expm1(w)), lambda R, w: S._mm(R, S._expm1_raw(w))),
+        "cay_increment": (U._cay_increment, S._cay_increment_raw),
+        "exp_update": (U._exp_update, lambda R, w: R + S._mm(R, S._expm1_raw(w))),
+        "cay_update": (U._cay_update, lambda R, u: R + S._cay_increment_raw(R, u)),
     }
 
 
@@ -431,14 +431,14 @@ def test_group_update_derivatives_match_autodiff(name, dtype):
 
 def test_group_update_derivative_matches_finite_differences():
     """The rules against central differences (not only against autodiff of the same formula)."""
-    from so3jax import _so3 as S
+    from so3jax import _updates as U
 
     rng = np.random.default_rng(4)
     R = jnp.asarray(Rotation.random(random_state=rng).as_matrix())
     dR = jnp.asarray(rng.normal(size=(3, 3)))
     for w in (np.zeros(3), rng.normal(size=3), unit_vectors(rng, 1)[0] * (np.pi - 1e-3)):
         dw = rng.normal(size=3)
-        for f in (S._exp_increment, S._cay_increment, S._exp_update, S._cay_update):
+        for f in (U._exp_increment, U._cay_increment, U._exp_update, U._cay_update):
             _, t = jax.jvp(f, (R, jnp.asarray(w)), (dR, jnp.asarray(dw)))
             eps = 1e-6
             fd = (f(R + eps * dR, w + eps * dw) - f(R - eps * dR, w - eps * dw)) / (2 * eps)
