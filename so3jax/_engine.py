@@ -104,15 +104,10 @@ from jax.custom_batching import custom_vmap
 from jax.custom_derivatives import SymbolicZero
 from jax.extend import core as jex_core
 
-from . import _linear_call, _plan, _scalarize as sc
+from . import _jax, _linear_call, _plan, _scalarize as sc
 from ._frames import Frame, FrameError, dense as frames_dense, frame_jvp
 from ._linear_call import linear_call
 from ._so3 import _mm, _mT, _vee
-
-try:  # frontend attributes on the ops traced inside (`_hoisted`)
-    from jax.experimental.xla_metadata import set_xla_metadata
-except ImportError:  # an older JAX: loops run as XLA compiles them by default
-    set_xla_metadata = None
 
 __all__ = ["run", "checkpoint_length"]
 
@@ -1197,7 +1192,7 @@ SCAN_UNROLL = 1
 #: loops hoisted (`HOIST_LOOPS`): 0.10, 0.11 and 0.12. On another, hoisting stays off
 #: unless asked for: XLA's older emitter aborts the process, not raises, where it
 #: cannot compile a hoisted loop.
-HOIST_VERIFIED = frozenset({(0, 10), (0, 11), (0, 12)})
+HOIST_VERIFIED = _jax.TESTED
 
 
 def hoisting_verified() -> bool:
@@ -1510,7 +1505,7 @@ def _hoisted(loop: Callable, *args):
     link (``__xla_cpu_runtime_AllReduce``, ``__xla_cpu_runtime_PartitionId``).
     """
     runs, hoist, reductions = _TRACING[-1]
-    if set_xla_metadata is None or not HOIST_LOOPS or not hoist:
+    if _jax.set_xla_metadata is None or not HOIST_LOOPS or not hoist:
         why = "off (HOIST_LOOPS)" if hoist else "a second derivative's loop"
         _plan.note("hoisting", hoisted=False, runs=runs, why=why)
         return loop(*args)
@@ -1543,7 +1538,7 @@ def _hoisted(loop: Callable, *args):
         outs = jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(hoisted.jaxpr, consts))(*leaves)
         return outs, (consts, leaves)
 
-    with set_xla_metadata(xla_cpu_small_call="true", inlineable="false"):
+    with _jax.set_xla_metadata(xla_cpu_small_call="true", inlineable="false"):
         outs, _ = call(consts, leaves)
     return jax.tree.unflatten(jax.tree.structure(shape), outs)
 
@@ -2050,6 +2045,9 @@ def run(
         return obs_c(P[0], c, *P[2])
 
     loop = _Loop(step_p, obs_p, n_steps, save_every, K)
+    if program != "autodiff" and not _jax.supported():
+        _jax.warn_reference_path()
+        program = "autodiff"
     _plan.note("loop", n_steps=n_steps, save_every=save_every, program=program)
     if program == "autodiff":
         return loop.fwd_checkpointed(P, carry0)

@@ -39,6 +39,8 @@ from jax.custom_batching import custom_vmap
 from jax.extend import core as jex_core
 from jax.extend.core.primitives import cond_p
 
+from . import _jax
+
 __all__ = [
     "scalarize",
     "flat_program",
@@ -750,21 +752,9 @@ def flat_program(fn: Callable, example, index=None, cut_cone: int = CUT_CONE, co
 
 
 def _batched_const(x) -> bool:
-    """Whether a constant of a flat program is batched by an enclosing `vmap`.
-
-    A `BatchTracer` with a batch axis. JAX up to 0.9 marks an unbatched one's axis with
-    the sentinel ``not_mapped``; 0.10 with ``None`` (and has no ``not_mapped``).
-    """
-    try:
-        from jax._src.interpreters import batching
-
-        tracer = batching.BatchTracer
-    except (ImportError, AttributeError):  # pragma: no cover - JAX moved it: assume batched
-        return isinstance(x, jax.core.Tracer)
-    if not isinstance(x, tracer):
-        return False
-    axis = x.batch_dim
-    return axis is not None and axis is not getattr(batching, "not_mapped", None)
+    """Whether a constant of a flat program is batched by an enclosing `vmap`
+    (`so3jax._jax.batched`)."""
+    return _jax.batched(x)
 
 
 def batched_components(run_flat, flat: list, batched: list, dtypes=None) -> list | None:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "so3jax"
 #: The execution engine: how a run executes, not what it computes.
-ENGINE = {"_engine", "_scalarize", "_frames", "_linear_call", "_updates"}
+ENGINE = {"_engine", "_scalarize", "_frames", "_linear_call", "_updates", "_jax", "_plan"}
 
 
 def _module_name(path: Path) -> str:

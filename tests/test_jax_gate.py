@@ -1,0 +1,49 @@
+"""The version gate of JAX's internals (`so3jax._jax`): on a JAX release outside
+`TESTED`, the engine runs its reference programs (the checkpointed ``lax.scan`` and
+JAX's own autodiff), with the same results, and warns once."""
+
+from __future__ import annotations
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import so3jax
+from so3jax import _jax
+
+SC = so3jax.scenes.seed()
+M = so3jax.RKMK4()
+R = so3jax.random_rotation(jax.random.PRNGKey(0), (16,))
+W = jnp.zeros((16, 3))
+K = jnp.array([8.81, 2.54])
+
+
+def _cost(k):
+    return so3jax.expected_cost(SC, k[0], k[1], R, W, M, 1e-2, 10)
+
+
+def test_the_installed_jax_is_tested():
+    assert _jax.supported(), f"JAX {jax.__version__}: add it to TESTED once the suite passes"
+
+
+def test_an_untested_release_takes_the_reference_path(monkeypatch):
+    fast = so3jax.explain(jax.grad(_cost), K)
+    assert [e["program"] for e in fast.of("loop")] == ["auto"]
+    value, grad = jax.value_and_grad(_cost)(K)
+
+    monkeypatch.setattr(_jax, "TESTED", frozenset())
+    _jax.warn_reference_path.cache_clear()
+    with pytest.warns(UserWarning, match="reference path"):
+        plan = so3jax.explain(jax.grad(_cost), K)
+    assert [e["program"] for e in plan.of("loop")] == ["autodiff"]
+    assert not plan.of("derivative")  # JAX's own autodiff: no engine rule ran
+    assert {e["layout"] for e in plan.of("layout")} <= {"array"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once per process: no second warning
+        ref_value, ref_grad = jax.value_and_grad(_cost)(K)
+    np.testing.assert_allclose(ref_value, value, rtol=1e-12)
+    np.testing.assert_allclose(ref_grad, grad, rtol=1e-10)
+    _jax.warn_reference_path.cache_clear()
