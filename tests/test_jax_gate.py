@@ -16,8 +16,8 @@ from so3jax import _jax
 
 SC = so3jax.scenes.seed()
 M = so3jax.RKMK4()
-R = so3jax.random_rotation(jax.random.PRNGKey(0), (16,))
-W = jnp.zeros((16, 3))
+R = so3jax.random_rotation(jax.random.PRNGKey(0), (2,))
+W = jnp.zeros((2, 3))
 K = jnp.array([8.81, 2.54])
 
 
