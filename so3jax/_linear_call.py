@@ -168,10 +168,7 @@ def _batch(args, dims, *, jaxpr, n_consts, n_res, transpose):
     ]
     res_axes = pre_axes[n_consts:]
 
-    def callee(*a):
-        return _eval(jaxpr, a[:n_consts], *a[n_consts:])
-
-    batched = jax.vmap(callee, in_axes=(*pre_axes, *[0] * len(lin)))
+    batched = jax.vmap(lambda *a: _impl(*a, **params), in_axes=(*pre_axes, *[0] * len(lin)))
 
     def batched_transpose(pre_leaves, ct_leaves):
         res_leaves = pre_leaves[n_consts:]

@@ -94,7 +94,8 @@ class Status(eqx.Module):
         """A sentence for a single run; for a batch, counts per outcome and the first failure.
 
         A batch's summary reads e.g. ``"62 of 64 runs finite to the end; 2 runs: the
-        state stopped being finite; first failure: run (3,) at step 118 (t = 0.118)"``.
+        state stopped being finite; first failure: run 3, the state stopped being finite
+        at step 118 (t = 1.18)"``.
         """
         code = np.asarray(self.code)
         step = np.asarray(self.step)
@@ -246,13 +247,6 @@ def mark_bad_input(traj: Trajectory, code0: Array) -> Trajectory:
     ``code0`` (step -1) and its saved points and final state are NaN (float leaves;
     counters such as the number of steps stay)."""
     started = code0 == OK
-
-    def nan(tree):
-        return jax.tree.map(
-            lambda a: jnp.where(started, a, jnp.nan) if jnp.issubdtype(a.dtype, jnp.inexact) else a,
-            tree,
-        )
-
     s = traj.status
     status = Status(
         code=jnp.where(started, s.code, code0),
@@ -261,19 +255,23 @@ def mark_bad_input(traj: Trajectory, code0: Array) -> Trajectory:
     )
     return Trajectory(
         t=traj.t,
-        R=nan(traj.R),
-        Omega=nan(traj.Omega),
+        R=_nan_unless(started, traj.R),
+        Omega=_nan_unless(started, traj.Omega),
         status=status,
-        y=nan(traj.y),
-        Rd=nan(traj.Rd),
-        M=nan(traj.M),
-        extras=nan(traj.extras),
+        y=_nan_unless(started, traj.y),
+        Rd=_nan_unless(started, traj.Rd),
+        M=_nan_unless(started, traj.M),
+        extras=_nan_unless(started, traj.extras),
     )
 
 
 def _nan_unless(keep: Array, tree):
-    """``tree`` where ``keep``, NaN elsewhere (float leaves)."""
-    return jax.tree.map(lambda a: jnp.where(keep, a, jnp.nan), tree)
+    """``tree`` where ``keep``, its float leaves NaN elsewhere (integer leaves, such as
+    step counters, stay)."""
+    return jax.tree.map(
+        lambda a: jnp.where(keep, a, jnp.nan) if jnp.issubdtype(a.dtype, jnp.inexact) else a,
+        tree,
+    )
 
 
 def settling_time(t: Array, inside: Array) -> Array:
