@@ -58,31 +58,26 @@ def progress(iterable, desc: str, total: int | None = None):
 
 @contextlib.contextmanager
 def engine_settings(**values):
-    """Trace with `so3jax._engine`'s module settings replaced, restored on exit.
+    """Trace with the engine's policy changed (`so3jax._engine.policy.using`), restored on
+    exit.
 
-    A dict setting (``BATCHED_LAYOUT``, ``GPU_LAYOUT``) is updated in place with the
-    given entries; any other (``SCAN_UNROLL``) is set. JAX's caches are cleared on
-    entry and exit: JAX caches the batched jaxpr of every jitted function inside
-    `simulate`, so without clearing, a trace after the first reuses the first one's
-    settings whatever they now say (an "array" row would run the default program).
+    ``values`` are fields of `so3jax._engine.policy.Policy`; a table (``batched_layout``,
+    ``gpu_layout``) given as a dict is merged into the active one. JAX's caches are
+    cleared on entry and exit: JAX caches the batched jaxpr of every jitted function
+    inside `simulate`, so without clearing, a trace after the first could reuse the first
+    one's choices.
     """
-    from so3jax import _engine
+    from so3jax._engine import policy
 
-    def apply(settings):
-        for k, v in settings.items():
-            if isinstance(getattr(_engine, k), dict):
-                getattr(_engine, k).update(v)
-            else:
-                setattr(_engine, k, v)
-
-    saved = {k: getattr(_engine, k) for k in values}
-    saved = {k: v.copy() if isinstance(v, dict) else v for k, v in saved.items()}
+    active = policy.current()
+    for table in ("batched_layout", "gpu_layout"):
+        if isinstance(values.get(table), dict):
+            values[table] = {**dict(getattr(active, table)), **values[table]}
     jax.clear_caches()
-    apply(values)
     try:
-        yield
+        with policy.using(**values):
+            yield
     finally:
-        apply(saved)
         jax.clear_caches()
 
 

@@ -7,7 +7,7 @@ runs) counts 128, since XLA computes it once per element of that output. Summed 
 operations of the run-sized shapes, it is the work of one loop step, and its ratios
 (the seed gradient's over 256 runs against its forward pass's, with and without column
 cuts) follow the measured times. It needs no quiet machine, so it ranks fusion choices
-(`so3jax._scalarize.COLUMN_CUT_CONE`) where timings move by 10 %.
+(`so3jax._engine.passes.scalarize.COLUMN_CUT_CONE`) where timings move by 10 %.
 
 Writes ``results/element-work[-quick].json`` and ``.png`` (each variant's step work, split
 into the primal's operations, the tangent columns', and the primal's recomputed inside
@@ -98,7 +98,7 @@ def main(argv=None):
     def cost(k, ck="auto"):
         return so3.expected_cost(scene, k[0], k[1], R0, W0, method, 1e-2, n, checkpoint_every=ck)
 
-    tile = so3._engine.batch_tiles("jacobian", B, 2)[1]
+    tile = so3._engine.passes.tiles.batch_tiles("jacobian", B, 2)[1]
     rows = []
     for what, fn, sizes in (
         ("forward pass", lambda k: cost(k, None), {B}),

@@ -1,6 +1,6 @@
 """Array against scalarized program under ``vmap``, on whatever backend runs it.
 
-The execution engine (`so3jax._engine.batched_layout`) picks a layout per batch
+The execution engine (`so3jax._engine.policy.batched_layout`) picks a layout per batch
 size; the table was measured on the 2-core CPU (`GPU_LAYOUT` holds what differs on
 a GPU). This script runs the same calls with the engine's choice ("default") and
 with the array program forced ("array": every entry of both tables set to never),
@@ -45,9 +45,10 @@ def layout(name):
     """``"default"``: the engine's tables; ``"array"``: the array program for every batch."""
     if name == "default":
         return C.engine_settings()
+    active = _engine.policy.current()
     never = {
-        table: {k: (None, None) for k in getattr(_engine, table)}
-        for table in ("BATCHED_LAYOUT", "GPU_LAYOUT")
+        table: {k: (None, None) for k, _ in getattr(active, table)}
+        for table in ("batched_layout", "gpu_layout")
     }
     return C.engine_settings(**never)
 

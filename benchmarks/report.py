@@ -996,6 +996,97 @@ def compile_times(R: Results) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _middle_half(values: list[float]) -> tuple[float, float]:
+    """The first and third quartiles (linear interpolation): a range that one call slowed by
+    the machine's other load does not stretch."""
+    v = sorted(values)
+
+    def q(p):
+        i = p * (len(v) - 1)
+        lo = int(i)
+        return v[lo] + (v[min(lo + 1, len(v) - 1)] - v[lo]) * (i - lo)
+
+    return q(0.25), q(0.75)
+
+
+@block("ablation")
+def ablation(R: Results) -> str:
+    d = R.get("ablation.json")
+    if d is None:
+        return not_measured("ablation.py") + "\n"
+    base, wl, configs = "all passes", list(d["workloads"]), list(d["configs"])
+    by = {(r["config"], r["workload"]): r for r in d["rows"]}
+    ratios: dict[str, dict[str, float]] = {}  # configuration -> workload -> ratio
+
+    def cell(c, w):
+        r, b = by.get((c, w)), by.get((base, w))
+        if r is None or b is None:
+            return NOT_MEASURED
+        if c == base:
+            lo, hi = _middle_half(r["rounds"])
+            k, unit = _unit(hi)
+            return (
+                f"{dur(r['run_s'])} ({sig3(lo * k)}–{sig3(hi * k)} {unit}), "
+                f"compile {dur(r['compile_s'])}"
+            )
+        ratio = r["run_s"] / b["run_s"]
+        # a program the pass leaves as it is: the pass buys nothing there, whatever the noise
+        ratios.setdefault(c, {})[w] = 1.0 if r["same_program_as_base"] else ratio
+        rounds = [t / u for t, u in zip(r["rounds"], b["rounds"], strict=True)]
+        lo, hi = (x(v) for v in _middle_half(rounds))
+        text = f"**{x(ratio)}**" + ("" if lo == hi else f" ({lo[:-1]}–{hi})")
+        text += f", compile {x(r['compile_s'] / b['compile_s'])}"
+        return text + (", same program" if r["same_program_as_base"] else "")
+
+    rows = [[c, *(cell(c, w) for w in wl)] for c in configs]
+    lines = table(["configuration", *(d["workloads"][w]["label"] for w in wl)], rows)
+    rounds = min(len(r["rounds"]) for r in d["rows"])
+    text = (
+        f"{device(d)}, {d['dtype']}, {d['method']}. First row: the fastest call with every "
+        "pass (in brackets the middle half of the calls) and its compile time; other rows: "
+        "the fastest call with a pass off over that, in brackets the middle half of that "
+        f"ratio over the rounds (at least {rounds}, the configurations alternated in each), "
+        "and the compile time over that of all passes. *Same program*: XLA compiled the very "
+        'program of all passes (the difference is noise). "none" is every pass off; '
+        '"autodiff" also differentiates with JAX alone (`program="autodiff"`, where the API '
+        "takes a program)."
+    )
+    same = [
+        r["run_s"] / by[(base, r["workload"])]["run_s"]
+        for r in d["rows"]
+        if r["config"] != base and r["same_program_as_base"] and (base, r["workload"]) in by
+    ]
+    if same:
+        text += f" The rows of the same program measure the noise: {x(min(same))[:-1]}"
+        text += f"–{x(max(same))}."
+    passes = [p for p in d["passes"] if f"no {p}" in ratios]
+    off = {p: ratios[f"no {p}"] for p in passes}
+    cheap = ", ".join(f"`{p}`" for p in passes if max(off[p].values()) < 1.1) or "none"
+    costly = ", ".join(f"`{p}`" for p in passes if min(off[p].values()) < 1 / 1.1)
+    text += (
+        " A pass that buys less than 10 % on every workload (each ratio in its row below "
+        "1.10x, a program it leaves unchanged counted as 1.00x) is a candidate for removal: "
+        f"{cheap}."
+    )
+    if passes:  # the workload where each pass buys the most
+        most = [(p, max(off[p], key=off[p].get)) for p in passes]
+        said = "; ".join(f"`{p}` {x(off[p][w])} ({d['workloads'][w]['label']})" for p, w in most)
+        text += f" Each pass's largest slowdown when off: {said}."
+    if costly:
+        text += f" Turned off, these make a workload over 10 % faster (below 0.91x): {costly}."
+    for fwd, grad, what in (
+        ("run", "run grad", "One run's gradient"),
+        ("quadrotor", "quadrotor grad", "The quadrotor's value and gradient"),
+    ):
+        pairs = [(c, by.get((c, grad)), by.get((c, fwd))) for c in (base, "none")]
+        pairs = [(c, g, f) for c, g, f in pairs if g is not None and f is not None]
+        if pairs:
+            said = ", ".join(f"{x(g['run_s'] / f['run_s'])} with {c}" for c, g, f in pairs)
+            text += f" {what} over its forward pass: {said}."
+    lines += ["", f"{text} {sources(['ablation.json'])}"]
+    return "\n".join(lines) + "\n"
+
+
 # ---------------------------------------------------------------------------------------
 # Rewriting the Markdown files
 

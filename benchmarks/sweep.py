@@ -8,7 +8,7 @@ re-runs of runs past the step limit); the figure is the second sweep's runs per 
 body-steps per second, with float32 as a ratio to float64 in the same run.
 
 ``sweep`` picks its program per platform (scalarized on a CPU, the array program on a
-GPU: `so3jax._engine.SWEEP_SCALARIZE`); ``--array`` and ``--scalarized`` force one.
+GPU: `so3jax._engine.policy.Policy.sweep_scalarize`); ``--array`` and ``--scalarized`` force one.
 Writes ``results/sweep[-quick].json`` and ``.png`` (forced: ``sweep-array[-quick]``,
 ``sweep-scalarized[-quick]``).
 
@@ -62,7 +62,7 @@ def run(
         scalarize=scalarize,
     )
     if chunk is None:  # sweep's own default for these devices and this run
-        chunk = _engine.sweep_chunk(jax.devices(), n_steps + 1, np.dtype(dtype).itemsize)
+        chunk = _engine.policy.sweep_chunk(jax.devices(), n_steps + 1, np.dtype(dtype).itemsize)
     chunk = min(chunk, n_grid * n_grid * n_att)
     # Warm-up: one chunk of the same shape (a list of gain pairs x the same
     # attitudes), so the timed sweep reuses everything compiled.
@@ -90,7 +90,9 @@ def run(
         "n_steps": n_steps,
         "chunk_size": chunk,
         # The program that ran (sweep's own choice where none was forced).
-        "scalarize": _engine.sweep_scalarize(jax.devices()) if scalarize is None else scalarize,
+        "scalarize": _engine.policy.sweep_scalarize(jax.devices())
+        if scalarize is None
+        else scalarize,
         "seconds": seconds,
         "first_chunk_with_compile_s": compile_s,
         "first_sweep_s": first_s,

@@ -11,7 +11,7 @@ engine (`so3jax._engine`):
   contraction with the input tangent JAX transposes;
 - reverse, nine-number attitude tangents: the default with the Jacobian program's
   attitude tangents carried as nine numbers (``dR``), not three (``xi``, ``dR = R
-  hat(xi)``, `so3jax._frames`);
+  hat(xi)``, `so3jax._engine.passes.frames`);
 - reverse, checkpointed: JAX's transpose of the checkpointed array program
   (``program="autodiff"``, memory ~ sqrt(n));
 - reverse, discrete adjoint: the engine's own backward scan of ``jax.vjp`` of
@@ -79,18 +79,15 @@ VARIANTS = [
 
 class nine_numbers:
     """``fn`` traced with the Jacobian programs' attitude tangents carried as nine numbers
-    (``_engine.FRAME_TANGENTS`` off), for the side-by-side row."""
+    (the ``"frames"`` pass off), for the side-by-side row."""
 
     def __init__(self, fn):
         self.fn = fn
 
     def __call__(self, k):
-        old = _engine.FRAME_TANGENTS
-        _engine.FRAME_TANGENTS = False
-        try:
+        policy = _engine.policy
+        with policy.using(passes=policy.current().passes - {"frames"}):
             return self.fn(k)
-        finally:
-            _engine.FRAME_TANGENTS = old
 
 
 def trajectory_cost(scene, k, R0, W0, method, n, program="auto"):

@@ -3,7 +3,7 @@
 On a GPU a batched run of a few thousand trajectories is latency bound: each
 iteration of the step loop costs tens of microseconds whatever the batch (an
 H100 at 2048 to 4096 runs). Unrolling the loop runs
-``u`` steps per iteration. `so3jax._engine.SCAN_UNROLL` sets it at trace time;
+``u`` steps per iteration. the engine policy's ``scan_unroll`` sets it at trace time;
 this script sets it per row (clearing JAX's caches around each, as the layout
 is), side by side in one process:
 
@@ -42,7 +42,7 @@ import so3jax as s  # noqa: E402
 
 def unrolled(u):
     """Trace the engine's step loops with ``unroll=u`` (JAX's caches cleared around it)."""
-    return C.engine_settings(SCAN_UNROLL=u)
+    return C.engine_settings(scan_unroll=u)
 
 
 def row(part, what, batch, u, r, **extra):

@@ -1,6 +1,7 @@
 """so3jax: rigid-body attitude dynamics and control on SO(3), in JAX."""
 
 from . import scenes as scenes
+from ._actuators import Rotors as Rotors
 from ._ambient import RK4 as RK4, simulate_ambient as simulate_ambient
 from ._control import (
     AbstractController as AbstractController,
@@ -16,6 +17,7 @@ from ._control import (
     tracking_errors as tracking_errors,
 )
 from ._dynamics import RigidBody as RigidBody
+from ._engine.plan import Plan as Plan, explain as explain
 from ._integrators import (
     CF4 as CF4,
     CG3 as CG3,
@@ -36,7 +38,6 @@ from ._integrators import (
     diffrax_solver as diffrax_solver,
     lie_term as lie_term,
 )
-from ._plan import Plan as Plan, explain as explain
 from ._quadrotor import (
     CircleReference as CircleReference,
     FigureEightReference as FigureEightReference,
@@ -140,6 +141,7 @@ __all__ = [
     "QuadrotorControl",
     "QuadrotorGains",
     "QuadrotorVehicle",
+    "Rotors",
     "quadrotor_control",
     "sweep_quadrotor",
     "Status",

@@ -7,7 +7,7 @@ saved points between steps come from the pair's dense output on the group.
 
 Derivatives (default ``adjoint=None``) hang on one ``jax.custom_jvp``, as the
 fixed-step engine's do (`so3jax._engine`): through at most
-`so3jax._engine.FORWARD_JACOBIAN_MAX` differentiated scalars (two gains, six
+the engine policy's ``forward_jacobian_max`` differentiated scalars (two gains, six
 per-axis gains) the run computes its value and its Jacobian in one pass, JAX's
 ``jvp`` of the run through `diffrax.ForwardMode` with the unit tangents batched
 over one primal; the tangent is that Jacobian times the input tangent, which JAX
@@ -18,22 +18,19 @@ discretised run (diffrax holds the step sizes constant to autodiff), equal to
 round-off. Second derivatives through a few scalars differentiate the one-pass
 Jacobian again; it is a while loop, which JAX differentiates in forward mode only, so
 reverse mode over it (``jacrev`` of ``jacfwd``, ``grad`` of a gradient's norm) transposes
-its ``jvp`` by columns (`so3jax._engine.forward_differentiated`).
+its ``jvp`` by columns (`so3jax._engine.derivatives.ForwardColumns`).
 """
 
 from __future__ import annotations
-
-import math
 
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from . import _engine, _plan
+from ._engine import derivatives, plan as _plan, policy
 from ._integrators import AbstractLieSolver
 from ._integrators._diffrax import DiffraxLieAdaptiveSolver, diffrax_solver, lie_term
-from ._linear_call import linear_call
 from ._scene import Scene
 from ._so3 import _is_concrete
 from ._state import all_finite
@@ -213,7 +210,7 @@ def _closes_over_tracers(scene: Scene, t0) -> bool:
 
 _SECOND_ORDER = (
     "second derivatives of an adaptive run through more than "
-    f"{_engine.FORWARD_JACOBIAN_MAX} differentiated scalars need an explicit adjoint: "
+    "the policy's forward_jacobian_max differentiated scalars need an explicit adjoint: "
     "adjoint=diffrax.DirectAdjoint() (jax.hessian and every other order of forward and "
     "reverse mode) or diffrax.ForwardMode() (forward mode only, e.g. jacfwd of jacfwd)"
 )
@@ -230,68 +227,39 @@ def _differentiable(static, max_steps: int):
         return run(dyn, diffrax.RecursiveCheckpointAdjoint())
 
     def f_jvp(primals, tangents):
-        (dyn,), (tdyn,) = primals, tangents
-        leaves, treedef = jax.tree.flatten(dyn)
-        t_leaves, nonzero = _engine._tangent_leaves(tdyn)
-        nz = [z and _engine._is_float(x) for x, z in zip(leaves, nonzero, strict=True)]
-        xs, ts = _engine._pick(nz, leaves), _engine._pick(nz, t_leaves)
+        flagged = derivatives.Flagged.of(primals[0], tangents[0])
 
-        def at(adjoint, leaves, xs):  # the run with the nonzero inputs set to xs
-            return run(jax.tree.unflatten(treedef, _engine._fill(nz, xs, leaves)), adjoint)
+        def at(adjoint, xs, others=None):  # the run with the differentiated inputs at xs
+            return run(flagged.at(xs, others), adjoint)
 
-        if not xs:
-            out = f(dyn)
-            zeros = [jnp.zeros_like(y) for y in _engine._floats(out)]
-            return out, _engine._tangent_tree(out, zeros)
-        n = sum(math.prod(jnp.shape(x)) for x in xs)
-        if n <= _engine.FORWARD_JACOBIAN_MAX:
+        if not flagged.xs:
+            out = f(*primals)
+            return out, derivatives.tangent_tree(
+                out, [jnp.zeros_like(y) for y in derivatives.float_leaves(out)]
+            )
+        if flagged.n <= policy.current().forward_jacobian_max:
             # Differentiated again (second derivatives), the Jacobian program is JAX's
             # jvp of a while loop: forward mode only, so its reverse mode runs by columns.
-            jac = _engine.forward_differentiated(
-                lambda xs, others: _jacobian(lambda *x: at(diffrax.ForwardMode(), others, x), xs)
-            )
-            others = _engine._fill(nz, [jnp.zeros_like(x) for x in xs], leaves)
-            out, J = jac(list(xs), others)
-            coef = jnp.concatenate([jnp.ravel(t) for t in ts])
-            dout = [jnp.tensordot(coef.astype(Jk.dtype), Jk, axes=1) for Jk in J]
-            return out, _engine._tangent_tree(out, dout)
-        out = f(dyn)
+            forward = lambda xs, others: at(diffrax.ForwardMode(), xs, others)
+            return derivatives.ForwardColumns().jvp(forward, flagged)
 
         # Every input is a residual: JAX may trace the transpose in another trace than
         # this one, so neither function may close over this trace's values.
         def tangent(res, lin):
-            forward = lambda *xs: _engine._floats(at(diffrax.ForwardMode(), res, xs))
-            return jax.jvp(forward, tuple(_engine._pick(nz, res)), tuple(lin))[1]
+            forward = lambda *xs: derivatives.float_leaves(at(diffrax.ForwardMode(), xs, res))
+            return jax.jvp(forward, tuple(flagged.pick(res)), tuple(lin))[1]
 
         def transpose(res, cts):
-            reverse = lambda *xs: _engine._floats(at(diffrax.RecursiveCheckpointAdjoint(), res, xs))
-            return list(jax.vjp(reverse, *_engine._pick(nz, res))[1](cts))
+            reverse = lambda *xs: derivatives.float_leaves(
+                at(diffrax.RecursiveCheckpointAdjoint(), xs, res)
+            )
+            return list(jax.vjp(reverse, *flagged.pick(res))[1](cts))
 
-        res = _engine.first_order_only(_SECOND_ORDER, list(leaves))
-        dout = linear_call(tangent, transpose, res, ts)
-        return out, _engine._tangent_tree(out, dout)
+        strategy = derivatives.CustomTranspose(_SECOND_ORDER)
+        return strategy.jvp(f(*primals), tangent, transpose, flagged)
 
     f.defjvp(f_jvp, symbolic_zeros=True)
     return f
-
-
-def _jacobian(run, xs):
-    """``run(*xs)`` and its Jacobian in ``xs`` (``n`` scalars in all), in one pass.
-
-    ``run`` steps through `diffrax.ForwardMode`; its ``jvp`` with the ``n`` unit
-    tangents batched over it runs the primal once, unbatched (``out_axes=None``),
-    and gives each float output a leading axis of ``n`` columns.
-    """
-
-    def g(*xs):
-        out = run(*xs)
-        return _engine._floats(out), out
-
-    def column(*ts):
-        return jax.jvp(g, tuple(xs), ts, has_aux=True)[1:]
-
-    dout, out = jax.vmap(column, out_axes=(0, None))(*_engine._unit_columns(xs))
-    return out, dout
 
 
 @_plan.jit

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _plan
+from ._engine import plan as _plan
 from ._scene import Scene
 from ._so3 import _hat, _is_concrete, _mm, _project
 from ._state import LieState, all_finite

@@ -30,7 +30,7 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 from ._dynamics import RigidBody
-from ._frames import Frame, dense, frame_rule, right_or_zero
+from ._engine.passes.frames import Frame, dense, frame_rule, right_or_zero
 from ._repr import module_repr
 from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _prep, _to_quat, _vee
 from ._types import Array, ArrayLike, Rot, Scalar, Vec3
@@ -146,7 +146,8 @@ def _errors_tangent(RtRd, vs, dE, dvs, rotated, a=None):
 
 @frame_rule(_errors_and_rates)
 def _errors_and_rates_frame(xs, ts):
-    """`_errors_and_rates` with ``dR = R hat(xi)``, ``dRd = Rd hat(zeta)`` (`so3jax._frames`):
+    """`_errors_and_rates` with ``dR = R hat(xi)``, ``dRd = Rd hat(zeta)``
+    (`so3jax._engine.passes.frames`):
     ``dE = -hat(xi) E + E hat(zeta)``, so ``d(E v) = E v x ... = -xi x (E v) + E (zeta x v)
     + E dv`` (9 operations for ``-xi x E v`` where ``dR^T Rd v`` took 45 + 15); ``e_R``'s
     six entries of ``dE`` from the frames."""

@@ -24,6 +24,13 @@ steps and resets ``c``. `simulate` tells the scene its step through
 `Scene.for_step`, which also checks that ``dt`` divides ``T`` and takes the
 first sample from the initial state.
 
+The plant may be more than the controller's model (`quadrotor`'s ``rotors``,
+``drag``, ``wind``): the commanded ``(f, M)`` goes through four rotors
+(`so3jax.Rotors`: allocation by Lee et al.'s eq. (1), per-rotor thrust limits,
+an optional first-order lag whose four thrusts join ``y.x`` at its end), and
+the body feels a linear drag ``-R diag(d) R^T (v - w(t))``. The controller keeps
+its nominal model; without these options the scene is the one above.
+
 References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control of a
 quadrotor UAV on SE(3)", CDC 2010 (and the FDCL's public reference code,
 fdcl-gwu); S. Cheng et al., "DiffTune: auto-tuning through auto-differentiation",
@@ -34,13 +41,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._actuators import Rotors
 from ._control import _check_gain, _geometric_torque
 from ._dynamics import RigidBody
 from ._repr import module_repr
@@ -492,6 +500,7 @@ class FlipReference(eqx.Module):
 _N = 9  # Omega, x, v
 _HELD = slice(9, 13)  # f, M (sampled control)
 _COUNTER = 13
+_N_ROTORS = 4
 
 
 def _control_of(scene, t, y):
@@ -509,11 +518,18 @@ class Quadrotor(Scene):
 
     State: ``y.R = R[None]``; ``y.x = [Omega, x, v]`` (continuous control) or
     ``[Omega, x, v, f, M, c]`` (sampled: the held thrust and moment and the
-    number of steps since the last sample). `observe` saves ``R``, ``Omega``,
-    ``M`` (the moment applied) and, in `Trajectory.extras`, ``x``, ``v``, ``f``
-    (the thrust applied), ``Rc``, ``Omega_c``, ``dOmega_c``, ``x_d``, ``e_x``, ``e_v``,
-    ``e_R``, ``e_Omega`` and ``Psi`` (the controller's view of the saved state,
-    with its continuous-time formulas).
+    number of steps since the last sample), followed by the four rotor thrusts
+    ``[f1, f2, f3, f4]`` when the rotors have a time constant. `observe` saves ``R``,
+    ``Omega``, ``M`` (the moment applied) and, in `Trajectory.extras`, ``x``, ``v``,
+    ``f`` (the thrust applied), ``Rc``, ``Omega_c``, ``dOmega_c``, ``x_d``, ``e_x``,
+    ``e_v``, ``e_R``, ``e_Omega`` and ``Psi`` (the controller's view of the saved
+    state, with its continuous-time formulas); with rotors also ``rotor_thrust``
+    (the four thrusts produced, `(4,)`) and ``f_cmd``, ``M_cmd`` (the controller's
+    command; ``f`` and ``M`` are then ``A`` times the rotor thrusts).
+
+    The rotor lag is integrated with the rest of ``y.x`` by the run's Lie-group
+    method (a vector-space part of the state, like ``v``); with sampled control its
+    input is constant over each hold.
 
     **Fields:**
 
@@ -523,6 +539,10 @@ class Quadrotor(Scene):
     - `y0`: the initial `LieState`.
     - `control_period`: ``T`` (an array) or ``None`` (continuous control).
     - `steps_per_sample`: ``T / dt``, set by `for_step` (``None`` before).
+
+    ``rotors``, ``drag`` and ``wind`` are ``None`` here (class attributes: the
+    vehicle is the controller's nominal model); `quadrotor` given any of them
+    builds a `QuadrotorPlant`, which carries them as fields.
     """
 
     vehicle: QuadrotorVehicle
@@ -531,10 +551,23 @@ class Quadrotor(Scene):
     y0: LieState
     control_period: Array | None = None
     steps_per_sample: Array | None = None
+    rotors: ClassVar[Rotors | None] = None
+    drag: ClassVar[Array | None] = None
+    wind: ClassVar[Array | Callable | None] = None
 
     @property
     def sampled(self) -> bool:
         return self.control_period is not None
+
+    @property
+    def lagged(self) -> bool:
+        """Whether the rotor thrusts are state (rotors with a time constant)."""
+        return self.rotors is not None and self.rotors.lagged
+
+    @property
+    def _rotor_slots(self) -> slice:
+        start = _COUNTER + 1 if self.sampled else _N
+        return slice(start, start + _N_ROTORS)
 
     def with_inertia(self, body):
         """The vehicle with another body (the control held at ``t = 0`` is sampled anew)."""
@@ -550,6 +583,9 @@ class Quadrotor(Scene):
             Omega0=y0.x[0:3],
             g=v.g,
             control_period=self.control_period,
+            rotors=self.rotors,
+            drag=self.drag,
+            wind=self.wind,
         )
 
     def steps_per_hold(self, dt) -> int:
@@ -583,22 +619,46 @@ class Quadrotor(Scene):
         Rc = self.control(t, y).Rc
         return jnp.where(jnp.isnan(Rc).any((-2, -1)), COMMAND_UNDEFINED, OK)
 
-    def _applied(self, t, y):
+    def commanded(self, t, y) -> tuple[Array, Array]:
+        """``(f, M)`` the controller commands at ``(t, y)``: held, or evaluated now."""
         if self.sampled:
             return y.x[..., 9], y.x[..., 10:13]
         c = self.control(t, y)
         return c.f, c.M
 
+    def rotor_thrusts(self, y, f_cmd, M_cmd) -> tuple[Array, Array]:
+        """``(thrusts, commands)`` of the four rotors, shape `(..., 4)` each.
+
+        The commands are ``A^-1 [f_cmd, M_cmd]`` clipped (`Rotors.command`); the
+        thrusts are the lagged state, or the commands themselves without a lag.
+        """
+        cmd = self.rotors.command(f_cmd, M_cmd)
+        return (y.x[..., self._rotor_slots] if self.lagged else cmd), cmd
+
+    def drag_force(self, t, y) -> Array:
+        """The drag force ``-R diag(d) R^T (v - w(t))`` in N, world frame, shape `(..., 3)`."""
+        R, v = y.R[..., 0, :, :], y.x[..., 6:9]
+        if self.wind is not None:
+            v = v - (self.wind(t) if callable(self.wind) else self.wind)
+        return -_mv(R, self.drag * _mv(_mT(R), v))
+
     def vector_field(self, t, y):
         R = y.R[..., 0, :, :]
         Omega, v = y.x[..., 0:3], y.x[..., 6:9]
-        f, M = self._applied(t, y)
+        f, M = self.commanded(t, y)
+        if self.rotors is not None:
+            thrusts, cmd = self.rotor_thrusts(y, f, M)
+            f, M = self.rotors.wrench(thrusts)
         e3 = _e3(y.x.dtype)
         dOmega = self.vehicle.body.euler_rhs(Omega, M)
         dv = self.vehicle.g * e3 - (f / self.vehicle.mass)[..., None] * _mv(R, e3)
+        if self.drag is not None:
+            dv = dv + self.drag_force(t, y) / self.vehicle.mass
         parts = [dOmega, v, dv]
         if self.sampled:
-            parts.append(jnp.zeros_like(y.x[..., _N:]))
+            parts.append(jnp.zeros_like(y.x[..., _N : _COUNTER + 1]))
+        if self.lagged:
+            parts.append(self.rotors.lag_rate(thrusts, cmd))
         return LieTangent(Omega[..., None, :], jnp.concatenate(parts, -1))
 
     def for_step(self, dt, t0):
@@ -609,9 +669,13 @@ class Quadrotor(Scene):
         swapped (`eqx.tree_at`, `tune`) starts from its own first sample, and
         a run restarted at a sample boundary continues exactly. A restart
         inside a hold (counter > 0) keeps the held values.
+
+        Lagged rotor thrusts start, in a run from ``t0 = 0``, at the clipped
+        command at ``(0, y0)`` (recomputed like the held control); a run from
+        ``t0 != 0`` continues from the thrusts in ``y0``.
         """
         if not self.sampled:
-            return self
+            return _start_rotors(self, t0) if self.lagged else self
         T = self.control_period
         if _is_concrete(dt) and _is_concrete(T):
             n = jnp.asarray(self.steps_per_hold(dt), T.dtype)
@@ -623,7 +687,8 @@ class Quadrotor(Scene):
         at_sample = (y.x[..., _COUNTER] == 0)[..., None]
         held = jnp.where(at_sample, jnp.concatenate([c.f[..., None], c.M], -1), y.x[..., _HELD])
         x = jnp.concatenate([y.x[..., :_N], held, y.x[..., _COUNTER:]], -1)
-        return eqx.tree_at(lambda s: s.y0, scene, LieState(y.R, x))
+        scene = eqx.tree_at(lambda s: s.y0, scene, LieState(y.R, x))
+        return _start_rotors(scene, t0) if self.lagged else scene
 
     def jump(self, t, y):
         if not self.sampled:
@@ -641,8 +706,10 @@ class Quadrotor(Scene):
         new = jnp.concatenate([c.f[..., None], c.M], -1)
         held = jnp.where(sample[..., None], new, y.x[..., _HELD])
         count = jnp.where(sample, jnp.zeros_like(count), count)
-        x = jnp.concatenate([y.x[..., :_N], held, count[..., None]], -1)
-        return LieState(y.R, x)
+        parts = [y.x[..., :_N], held, count[..., None]]
+        if self.lagged:
+            parts.append(y.x[..., self._rotor_slots])
+        return LieState(y.R, jnp.concatenate(parts, -1))
 
     def observe(self, t, y):
         c = self.control(t, y)
@@ -663,7 +730,32 @@ class Quadrotor(Scene):
             "e_R": c.e_R,
             "e_Omega": c.e_Omega,
             "Psi": c.Psi,
-        }
+        } | self._observe_rotors(y, f, M)
+
+    def _observe_rotors(self, y, f_cmd, M_cmd) -> dict[str, Array]:
+        if self.rotors is None:
+            return {}
+        thrusts, _ = self.rotor_thrusts(y, f_cmd, M_cmd)
+        f, M = self.rotors.wrench(thrusts)
+        return {"f": f, "M": M, "f_cmd": f_cmd, "M_cmd": M_cmd, "rotor_thrust": thrusts}
+
+
+class QuadrotorPlant(Quadrotor):
+    """A `Quadrotor` whose vehicle is more than the controller's model.
+
+    **Fields:** those of `Quadrotor`, and
+
+    - `rotors`: a `Rotors`, or ``None`` (the commanded ``(f, M)`` is applied).
+    - `drag`: ``d``, shape `(3,)`, in N s/m, or ``None`` (no drag).
+    - `wind`: ``w``, shape `(3,)` in m/s, or a function ``t -> w(t)``; or ``None``.
+
+    Built by `quadrotor` when any of them is given, so that a nominal scene keeps
+    the pytree (and the compiled program) of a plain `Quadrotor`.
+    """
+
+    rotors: Rotors | None = None
+    drag: Array | None = None
+    wind: Array | Callable | None = None
 
 
 def _vector_arg(value, name: str, dtype) -> Array:
@@ -691,6 +783,9 @@ def quadrotor(
     Omega0: ArrayLike = 0.0,
     g: ArrayLike = 9.81,
     control_period: ArrayLike | None = None,
+    rotors: Rotors | None = None,
+    drag: ArrayLike | None = None,
+    wind: ArrayLike | Callable | None = None,
 ) -> Quadrotor:
     """A quadrotor tracking a position and heading under Lee's controller on SE(3).
 
@@ -701,6 +796,14 @@ def quadrotor(
     time and held until the next sample (``control_period=T``: zero-order hold;
     `simulate` then needs a ``dt`` that divides ``T``, and the initial state
     holds the control sampled at ``t = 0``).
+
+    With `rotors`, the commanded ``(f_cmd, M_cmd)`` is allocated to the four
+    rotors, clipped, optionally lagged (``tau f_i' = f_i,cmd - f_i``, the thrusts
+    starting at the clipped command at ``t = 0``), and ``(f, M) = A [f1..f4]``
+    (Lee et al.'s eq. (1); see `Rotors`) is applied. With `drag`, ``m v'`` gains
+    ``-R diag(d) R^T (v - w(t))`` (air at the wind velocity ``w``, world frame).
+    The controller is not told: it keeps its nominal model (no limits, lag, drag
+    or wind) and computes ``Omega_c``, ``dOmega_c`` from its own command.
 
     **Arguments:**
 
@@ -715,6 +818,13 @@ def quadrotor(
     - `Omega0`: initial body rate, shape `(3,)` (or a scalar).
     - `g`: gravitational acceleration (>= 0).
     - `control_period`: ``T`` in s (> 0) for sampled-and-held control, or ``None``.
+    - `rotors`: a `Rotors` (``4 thrust_max >= m g``: the vehicle must be able to
+      hover), or ``None`` (the command is applied as it is).
+    - `drag`: ``d``, the drag coefficients along the body axes, in N s/m (>= 0),
+      shape `(3,)` (or a scalar for all three), or ``None`` (no drag).
+    - `wind`: ``w``, the wind velocity in m/s in the world frame: shape `(3,)`,
+      or a function ``t -> w(t)`` of shape `(3,)`; ``None`` is still air. It
+      acts through the drag (`drag` required).
 
     The dtype of the scene is that of ``R0`` (default: JAX's default float).
 
@@ -743,15 +853,68 @@ def quadrotor(
         T = _to_dtype(_check_scalar(control_period, "control_period", positive=True), dtype)
     vehicle = QuadrotorVehicle(mass=m, body=body, g=g)
     y0 = _quadrotor_state(R0, Omega0, x0, v0)
-    scene = Quadrotor(vehicle=vehicle, gains=gains, reference=reference, y0=y0, control_period=T)
+    plant = _plant_options(rotors, drag, wind, m, g, dtype)
+    scene = (QuadrotorPlant if plant else Quadrotor)(
+        vehicle=vehicle, gains=gains, reference=reference, y0=y0, control_period=T, **plant
+    )
     if T is not None:
         scene = eqx.tree_at(lambda s: s.y0, scene, _hold_initial_control(scene))
+    if scene.lagged:
+        scene = eqx.tree_at(lambda s: s.y0, scene, _add_rotor_state(scene))
     return scene
+
+
+def _plant_options(rotors, drag, wind, m, g, dtype) -> dict:
+    """`quadrotor`'s ``rotors``, ``drag`` and ``wind``, checked and cast to ``dtype``."""
+    out = {}
+    if rotors is not None:
+        if not isinstance(rotors, Rotors):
+            raise TypeError(f"rotors must be a so3jax.Rotors, got {type(rotors).__name__}")
+        rotors.check_hover(m, g)
+        out["rotors"] = _cast_floats(rotors, dtype)
+    if drag is not None:
+        d = _vector_arg(drag, "drag", dtype)
+        if _is_concrete(d) and np.any(np.asarray(d) < 0):
+            raise ValueError(f"drag must be >= 0 (N s/m), got {np.asarray(d)}")
+        out["drag"] = d
+    if wind is not None:
+        if drag is None:
+            raise ValueError("wind acts through the drag: pass drag (N s/m) with wind")
+        if callable(wind):
+            try:
+                shape = jax.eval_shape(wind, jax.ShapeDtypeStruct((), dtype)).shape
+            except Exception as e:
+                raise ValueError(f"wind(t) failed on a scalar time: {e}") from e
+            if shape != (3,):
+                raise ValueError(f"wind(t) must return shape (3,), got {shape}")
+            out["wind"] = _cast_floats(wind, dtype)
+        else:
+            out["wind"] = _vector_arg(wind, "wind", dtype)
+    return out
 
 
 @jax.jit
 def _quadrotor_state(R0, Omega0, x0, v0) -> LieState:
     return LieState(R0[None], jnp.concatenate([Omega0, x0, v0]))
+
+
+@eqx.filter_jit
+def _add_rotor_state(scene: Quadrotor) -> LieState:
+    """The initial state with the rotor thrusts appended: the clipped command at ``t = 0``."""
+    y = scene.y0
+    f, M = scene.commanded(jnp.zeros((), y.x.dtype), y)
+    return LieState(y.R, jnp.concatenate([y.x, scene.rotors.command(f, M)], -1))
+
+
+@eqx.filter_jit
+def _start_rotors(scene: Quadrotor, t0) -> Quadrotor:
+    """The scene whose lagged rotor thrusts are set, where ``t0 == 0``, to the clipped
+    command at ``(t0, y0)`` (one compiled call; inlined under a trace)."""
+    y = scene.y0
+    f, M = scene.commanded(jnp.asarray(t0, y.x.dtype), y)
+    slots = scene._rotor_slots
+    start = jnp.where(t0 == 0, scene.rotors.command(f, M), y.x[..., slots])
+    return eqx.tree_at(lambda s: s.y0, scene, LieState(y.R, y.x.at[..., slots].set(start)))
 
 
 @eqx.filter_jit

@@ -19,12 +19,13 @@ from ._control import (
     QuaternionController,
     SinusoidalRate,
     _errors,
+    _scalar_param,
 )
 from ._dynamics import RigidBody
 from ._scene import MechanicalScene, check_rotation, check_vector
-from ._so3 import _exp_jit, _to_dtype, from_euler_zyx
+from ._so3 import _as_float, _exp_jit, _is_concrete, _to_dtype, from_euler_zyx
 from ._state import LieState
-from ._types import ArrayLike
+from ._types import Array, ArrayLike
 
 
 def _cast_body(body: RigidBody, dtype) -> RigidBody:
@@ -87,9 +88,17 @@ class Tracking(MechanicalScene):
     attitude, which moves with ``Rd' = Rd hat(Omega_d(t))``) and
     ``y.x = [Omega, memory]`` where ``memory`` (``controller.memory_size``
     numbers, zero derivative) is updated after every step by `jump` (hybrid
-    controllers). `observe` saves ``R``, ``Omega``, ``Rd``, ``M`` (the torque)
-    and, in `Trajectory.extras`, ``e_R``, ``e_Omega`` and anything the
-    controller observes.
+    controllers). `observe` saves ``R``, ``Omega``, ``Rd``, ``M`` (the torque
+    the actuators apply) and, in `Trajectory.extras`, ``e_R``, ``e_Omega`` and
+    anything the controller observes.
+
+    Optional actuator and environment model (each ``None`` by default; with all
+    three ``None`` the scene integrates exactly the controller's closed loop):
+    ``J Omega' = clip(M_cmd, -max_torque, max_torque) + disturbance - Omega x J Omega``,
+    where ``M_cmd`` is the controller's torque, evaluated continuously or, with a
+    `control_period`, sampled and held (a `SampledTracking` scene). With
+    `max_torque` or `control_period`, ``extras["M_cmd"]`` holds the commanded torque
+    (``M = clip(M_cmd)``); the disturbance is not part of the saved ``M``.
 
     **Fields:**
 
@@ -97,13 +106,44 @@ class Tracking(MechanicalScene):
     - `controller`: an `AbstractController`, e.g. `GeometricController`.
     - `reference`: any function ``t -> (Omega_d(t), dOmega_d(t))``.
     - `y0`: the initial `LieState`.
+    - `disturbance`: constant body disturbance torque in N m, shape `(3,)`, or ``None``.
+    - `max_torque`: per-axis torque limit in N m (> 0), shape `()` or `(3,)`, or ``None``.
+    - `control_period`: sampling period ``T`` in s (only in a `SampledTracking`), or
+      ``None``.
     """
 
     body: RigidBody
     controller: AbstractController
     reference: Callable
     y0: LieState
+    # `disturbance` first among the optional fields: `so3jax._sweep_params.Disturbed`
+    # redeclares it without a default.
+    disturbance: Array | None = None
+    max_torque: Array | None = None
+    control_period: Array | None = None
     time_driven_groups: ClassVar[tuple[int, ...]] = (1,)  # Rd
+
+    def __check_init__(self):
+        if self.control_period is not None and not isinstance(self, SampledTracking):
+            raise ValueError(
+                "a tracking scene with a control_period is a SampledTracking: build it with "
+                "so3jax.scenes.tracking(..., control_period=T)"
+            )
+        shape = getattr(getattr(self.y0, "x", None), "shape", None)
+        parts = "Omega, the controller's memory"
+        width = 3 + getattr(self.controller, "memory_size", 0)
+        if self.control_period is not None:
+            parts, width = parts + ", the held torque and a step counter", width + 4
+        if shape is not None and len(shape) >= 1 and shape[-1] != width:
+            raise ValueError(
+                f"y0.x must hold {width} numbers ({parts}), got {shape[-1]}; build the scene "
+                "with so3jax.scenes.tracking"
+            )
+
+    @property
+    def sampled(self) -> bool:
+        """Whether the torque is sampled and held (a `control_period` is given)."""
+        return self.control_period is not None
 
     def _reference(self, t, dtype):
         Omega_d, dOmega_d = self.reference(t)
@@ -112,19 +152,37 @@ class Tracking(MechanicalScene):
     def _parts(self, t, y):
         R, Rd = y.R[..., 0, :, :], y.R[..., 1, :, :]
         Omega_d, dOmega_d = self._reference(t, y.R.dtype)
-        return R, Rd, y.x[..., :3], y.x[..., 3:], Omega_d, dOmega_d
+        Omega = y.x[..., :3]
+        mem = y.x[..., 3 : 3 + self.controller.memory_size] if self.sampled else y.x[..., 3:]
+        return R, Rd, Omega, mem, Omega_d, dOmega_d
 
     def _memory(self, mem):
         return mem if self.controller.memory_size else None
 
-    def torque(self, t, y):
+    def _commanded(self, t, y):
+        """``M_cmd``: the torque held since the last sample, or the controller's now."""
+        if self.sampled:
+            return y.x[..., -4:-1]
         R, Rd, Omega, mem, Od, dOd = self._parts(t, y)
         return self.controller(t, self.body, R, Omega, Rd, Od, dOd, self._memory(mem))
 
+    def _clip(self, M):
+        """The torque the actuators apply for the command ``M``: ``clip(M, -max, max)``."""
+        if self.max_torque is None:
+            return M
+        return jnp.clip(M, -self.max_torque, self.max_torque)
+
+    def torque(self, t, y):
+        """The body torque: the applied control torque plus the disturbance."""
+        M = self._clip(self._commanded(t, y))
+        return M if self.disturbance is None else M + self.disturbance
+
     def angular_acceleration(self, t, y):
         # The controller's closed loop (`AbstractController.angular_acceleration`),
-        # unless a subclass changed the torque (`so3jax._sweep_params.Disturbed`).
-        if type(self).torque is not Tracking.torque:
+        # unless the torque is not the controller's: a subclass changed it
+        # (`so3jax._sweep_params.Disturbed`), or it is limited, held or disturbed.
+        plain = self.disturbance is None and self.max_torque is None and not self.sampled
+        if type(self).torque is not Tracking.torque or not plain:
             return super().angular_acceleration(t, y)
         R, Rd, Omega, mem, Od, dOd = self._parts(t, y)
         return self.controller.angular_acceleration(
@@ -140,13 +198,25 @@ class Tracking(MechanicalScene):
 
     def with_inertia(self, body):
         y0 = self.y0
-        return tracking(body, self.controller, y0.R[0], y0.x[:3], y0.R[1], self.reference)
+        return tracking(
+            body,
+            self.controller,
+            y0.R[0],
+            y0.x[:3],
+            y0.R[1],
+            self.reference,
+            max_torque=self.max_torque,
+            control_period=self.control_period,
+            disturbance=self.disturbance,
+        )
 
     def restarted(self, R0):
         if not self.controller.memory_size:
             return self
         memory = self.controller.init_memory(R0, self.y0.R[1]).astype(self.y0.x.dtype)
-        return eqx.tree_at(lambda s: s.y0.x, self, self.y0.x.at[3:].set(memory))
+        x = self.y0.x
+        x = x.at[3 : 3 + memory.shape[-1]].set(memory) if self.sampled else x.at[3:].set(memory)
+        return eqx.tree_at(lambda s: s.y0.x, self, x)
 
     def jump(self, t, y):
         if not self.controller.memory_size:
@@ -156,12 +226,126 @@ class Tracking(MechanicalScene):
 
     def observe(self, t, y):
         R, Rd, Omega, mem, Od, dOd = self._parts(t, y)
-        M = self.controller(t, self.body, R, Omega, Rd, Od, dOd, self._memory(mem))
+        if self.sampled:
+            M = self._commanded(t, y)
+        else:
+            M = self.controller(t, self.body, R, Omega, Rd, Od, dOd, self._memory(mem))
         e_R, e_Omega = _errors(R, Omega, Rd, Od)
-        out = {"R": R, "Omega": Omega, "Rd": Rd, "M": M, "e_R": e_R, "e_Omega": e_Omega}
+        out = {"R": R, "Omega": Omega, "Rd": Rd, "M": self._clip(M), "e_R": e_R, "e_Omega": e_Omega}
+        if self.max_torque is not None or self.sampled:
+            out["M_cmd"] = M
         if self.controller.memory_size:
             out.update(self.controller.observe(R, Rd, mem))
         return out
+
+
+def _steps_per_hold(control_period, dt) -> int:
+    """``control_period / dt``; ``ValueError`` unless ``dt`` divides the period.
+
+    The rule of the quadrotor's `Quadrotor.steps_per_hold`: the ratio must be a
+    whole number ``>= 1`` to a relative ``1e-6``.
+    """
+    T = float(np.asarray(control_period, np.float64))
+    ratio = T / float(np.asarray(dt, np.float64))
+    n = round(ratio)
+    if n < 1 or abs(ratio - n) > 1e-6 * max(1.0, ratio):
+        raise ValueError(
+            f"dt ({float(dt):g}) must divide control_period ({T:g}) into a whole "
+            f"number of steps; got control_period / dt = {ratio:.6g}"
+        )
+    return n
+
+
+def _sample_torque(scene, t, y):
+    """The controller's torque at ``(t, y)`` (a sample of `SampledTracking`)."""
+    R, Rd, Omega, mem, Od, dOd = scene._parts(t, y)
+    return scene.controller(t, scene.body, R, Omega, Rd, Od, dOd, scene._memory(mem))
+
+
+#: `_sample_torque` compiled: `tracking` and `SampledTracking.for_step` sample outside any
+#: ``jit`` (op by op, a first call would compile one small program per operation).
+_sample_torque_jit = eqx.filter_jit(_sample_torque)
+
+
+class SampledTracking(Tracking):
+    """A `Tracking` scene whose controller is sampled and held (zero-order hold).
+
+    The torque is computed at ``t0 + k T`` (``T = control_period``) from the state at
+    that time and held until the next sample, as flight software runs a controller.
+    ``y.x = [Omega, memory, M_held, c]``: the held command and the number of steps
+    since the last sample, both with zero derivative; `jump` (after every step) first
+    updates the controller's memory, then samples when ``c`` reaches ``T / dt``.
+    `simulate` tells the scene its step through `for_step`, which checks that ``dt``
+    divides ``T`` (the quadrotor's rule, `Quadrotor.steps_per_hold`) and takes the
+    first sample from the initial state. Fixed steps only: adaptive steps raise a
+    ``ValueError``.
+
+    **Fields:** those of `Tracking`, and
+
+    - `steps_per_sample`: ``T / dt``, set by `for_step` (``None`` before).
+    """
+
+    steps_per_sample: Array | None = None
+
+    def steps_per_hold(self, dt) -> int:
+        """``control_period / dt``; ``ValueError`` unless ``dt`` divides the period.
+
+        Call it eagerly where ``dt`` and the period are known (a traced period
+        inside ``jit`` cannot be checked; `for_step` then rounds the ratio).
+        """
+        return _steps_per_hold(self.control_period, dt)
+
+    def for_step(self, dt, t0):
+        """Record ``T / dt`` (``dt`` must divide ``T``) and sample the controller at ``t0``.
+
+        A state whose step counter is 0 sits at a sample time: its held torque is
+        recomputed from ``(t0, y0)``, so a scene whose gains were swapped
+        (`eqx.tree_at`, `tune`) or that was restarted elsewhere starts from its own
+        first sample. A restart inside a hold (counter > 0) keeps the held torque.
+        """
+        T = self.control_period
+        if _is_concrete(dt) and _is_concrete(T):
+            n = jnp.asarray(self.steps_per_hold(dt), T.dtype)
+        else:
+            n = jnp.maximum(jnp.round(T / dt), 1.0).astype(T.dtype)
+        scene = eqx.tree_at(lambda s: s.steps_per_sample, self, n, is_leaf=lambda a: a is None)
+        y = self.y0
+        M = _sample_torque_jit(self, jnp.asarray(t0, y.x.dtype), y)
+        at_sample = (y.x[..., -1] == 0)[..., None]
+        held = jnp.where(at_sample, M, y.x[..., -4:-1])
+        x = jnp.concatenate([y.x[..., :-4], held, y.x[..., -1:]], -1)
+        return eqx.tree_at(lambda s: s.y0, scene, LieState(y.R, x))
+
+    def restarted(self, R0):
+        """The scene restarted from ``R0`` at a sample time (`for_step` then samples).
+
+        ``R0`` is also written into ``y0.R[0]``: the first sample needs it, and a
+        start given apart (`simulate_from`) then agrees with the scene's own.
+        """
+        scene = super().restarted(R0)
+        y0 = scene.y0
+        R = y0.R.at[0].set(jnp.asarray(R0, y0.R.dtype))
+        x = y0.x.at[-1].set(0.0)
+        return eqx.tree_at(lambda s: s.y0, scene, LieState(R, x))
+
+    def jump(self, t, y):
+        if self.steps_per_sample is None:
+            raise ValueError(
+                "a sampled-data tracking scene (control_period given) runs with fixed steps "
+                "that divide control_period: simulate(scene, method, dt, n_steps); adaptive "
+                "steps do not apply"
+            )
+        m = self.controller.memory_size
+        R, Rd = y.R[..., 0, :, :], y.R[..., 1, :, :]
+        if m:
+            mem = self.controller.update_memory(R, Rd, y.x[..., 3 : 3 + m])
+            y = LieState(y.R, jnp.concatenate([y.x[..., :3], mem, y.x[..., 3 + m :]], -1))
+        count = y.x[..., -1] + 1.0
+        sample = count > self.steps_per_sample - 0.5
+        held = jnp.where(sample[..., None], _sample_torque(self, t, y), y.x[..., -4:-1])
+        count = jnp.where(sample, jnp.zeros_like(count), count)
+        x = jnp.concatenate([y.x[..., :-4], held, count[..., None]], -1)
+        return LieState(y.R, x)
 
 
 def _cast_floats(tree, dtype):
@@ -201,12 +385,26 @@ def tracking(
     Omega0: ArrayLike,
     Rd0: ArrayLike,
     reference: Callable | None = None,
+    max_torque: ArrayLike | None = None,
+    control_period: ArrayLike | None = None,
+    disturbance: ArrayLike | None = None,
 ) -> Tracking:
     """Attitude tracking: a rigid body, a controller and a reference rate.
 
-    ``R' = R hat(Omega)``, ``J Omega' = M - Omega x J Omega`` with
-    ``M = controller(t, body, R, Omega, Rd, Omega_d(t), dOmega_d(t))``, and
-    ``Rd' = Rd hat(Omega_d(t))``.
+    ``R' = R hat(Omega)``, ``J Omega' = M + d - Omega x J Omega`` with
+    ``M = clip(M_cmd, -max_torque, max_torque)`` per body axis,
+    ``M_cmd = controller(t, body, R, Omega, Rd, Omega_d(t), dOmega_d(t))``, and
+    ``Rd' = Rd hat(Omega_d(t))``. With a `control_period` ``T``, ``M_cmd`` is
+    evaluated at ``t0 + k T`` from the state at that time and held until the next
+    sample (zero-order hold): `simulate` then needs fixed steps ``dt`` that divide
+    ``T`` (``T / dt`` a whole number to a relative ``1e-6``, as for the quadrotor),
+    and the initial state holds the sample at ``t = 0``.
+
+    With `max_torque`, `control_period` and `disturbance` all ``None`` (the default)
+    the scene is the controller's closed loop alone: the options add no leaf and no
+    operation to its program. The saved ``M`` is the applied control torque (clipped,
+    without ``d``); with `max_torque` or `control_period` the commanded one is in
+    ``Trajectory.extras["M_cmd"]``.
 
     **Arguments:**
 
@@ -219,11 +417,22 @@ def tracking(
     - `reference`: a function ``t -> (Omega_d(t), dOmega_d(t))`` (shapes
       `(3,)`), e.g. `SinusoidalRate()`; default `ConstantRate()` (zero rate:
       regulation to ``Rd0``).
+    - `max_torque`: the actuators' limit in N m (> 0) on each body axis, a scalar or
+      shape `(3,)`, or ``None`` (no limit). The clip is differentiable in the gains
+      and in `max_torque` away from where a component meets the limit.
+    - `control_period`: ``T`` in s (> 0), a scalar, for sampled-and-held control, or
+      ``None`` (continuous control).
+    - `disturbance`: a constant body torque ``d`` in N m, shape `(3,)`, added to the
+      applied torque (the meaning and sign of `sweep`'s ``params["disturbance"]``),
+      or ``None``.
 
     The dtype of the scene is that of ``R0``; the controller's and the
-    reference's parameters are cast to it.
+    reference's parameters and the options are cast to it. Bad shapes raise a
+    ``ValueError`` naming the argument; so do bad values when they are concrete
+    (under `jit`/`vmap` they are not checked).
 
-    **Returns:** a `Tracking` scene for `simulate`.
+    **Returns:** a `Tracking` scene for `simulate` (a `SampledTracking` with a
+    `control_period`).
 
     References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control
     of a quadrotor UAV on SE(3)", CDC 2010.
@@ -246,8 +455,66 @@ def tracking(
     reference = ConstantRate() if reference is None else reference
     reference = _cast_floats(reference, dtype)
     _check_reference(reference, dtype)
+    options = {
+        "max_torque": _max_torque_arg(max_torque, dtype),
+        "control_period": _control_period_arg(control_period, dtype),
+        "disturbance": _disturbance_arg(disturbance, dtype),
+    }
     y0 = _tracking_state(controller, R0, Rd0, Omega0)
-    return Tracking(body=body, controller=controller, reference=reference, y0=y0)
+    if options["control_period"] is None:
+        return Tracking(body=body, controller=controller, reference=reference, y0=y0, **options)
+    T = options.pop("control_period")
+    continuous = Tracking(body=body, controller=controller, reference=reference, y0=y0, **options)
+    y0 = _hold_initial_torque(continuous)
+    return SampledTracking(
+        body=body, controller=controller, reference=reference, y0=y0, control_period=T, **options
+    )
+
+
+def _max_torque_arg(value, dtype):
+    """`max_torque` checked (shape `()` or `(3,)`; concrete: positive and finite) and cast."""
+    if value is None:
+        return None
+    a = _as_float(value)
+    if a.shape not in ((), (3,)):
+        raise ValueError(
+            f"max_torque must be a scalar or a 3-vector (N m per body axis), got shape {a.shape}"
+        )
+    if _is_concrete(a):
+        an = np.asarray(a, np.float64)
+        if not (np.all(np.isfinite(an)) and np.all(an > 0)):
+            raise ValueError(f"max_torque must be positive and finite, got {an}")
+    return _to_dtype(a, dtype)
+
+
+def _control_period_arg(value, dtype):
+    """`control_period` checked (a scalar; concrete: positive and finite) and cast."""
+    if value is None:
+        return None
+    return _to_dtype(_scalar_param(value, "control_period", positive=True), dtype)
+
+
+def _disturbance_arg(value, dtype):
+    """`disturbance` checked (shape `(3,)`; concrete: finite) and cast."""
+    if value is None:
+        return None
+    a = _as_float(value)
+    if a.shape != (3,):
+        raise ValueError(
+            f"disturbance must be a 3-vector (a body torque in N m), got shape {a.shape}"
+        )
+    if _is_concrete(a) and not np.all(np.isfinite(np.asarray(a))):
+        raise ValueError(f"disturbance must be finite, got {np.asarray(a)}")
+    return _to_dtype(a, dtype)
+
+
+@eqx.filter_jit
+def _hold_initial_torque(scene: Tracking) -> LieState:
+    """The initial state of ``scene`` (continuous control) with the torque sampled at
+    ``t = 0`` held and a step counter of 0 appended (one compiled call)."""
+    y0 = scene.y0
+    M = _sample_torque(scene, jnp.zeros((), y0.x.dtype), y0)
+    return LieState(y0.R, jnp.concatenate([y0.x, M, jnp.zeros(1, y0.x.dtype)]))
 
 
 @eqx.filter_jit

@@ -6,9 +6,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from . import _plan
 from ._adaptive import simulate_adaptive
-from ._engine import run
+from ._engine import plan as _plan, run
 from ._integrators import AbstractLieSolver
 from ._scene import Scene, check_rotation, check_vector
 from ._so3 import _to_dtype
@@ -65,11 +64,12 @@ def simulate(
     - `t0`: initial time.
     - `scalarize`: leave it at ``None``: the execution engine
       (`so3jax._engine`) runs a single trajectory as the array program and a
-      large batch under ``vmap`` (from `so3jax._engine.BATCHED_LAYOUT`'s threshold on a
-      CPU, `so3jax._engine.GPU_LAYOUT`'s on a GPU) as the scalarized program (every
+      large batch under ``vmap`` (from the engine policy's ``batched_layout``
+      threshold, `so3jax._engine.policy.Policy`; ``gpu_layout``'s on a GPU) as the
+      scalarized program (every
       scalar component a contiguous batch array, a few fused kernels per step;
       ``benchmarks/throughput.py`` measures it). Through up to
-      `so3jax._engine.FORWARD_JACOBIAN_MAX` differentiated scalars it differentiates a
+      the engine policy's ``forward_jacobian_max`` differentiated scalars it differentiates a
       run in one pass with its Jacobian's columns; through more, with JAX's
       ``jvp`` of the checkpointed array program. ``True`` / ``False`` force the scalarized /
       array forward program whatever the batching (for benchmarks); a step with

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
-from ._frames import Frame, frame_rule
+from ._engine.passes.frames import Frame, frame_rule
 from ._so3 import _cay_increment_raw
 from ._types import Array, Float
 from ._updates import (
@@ -115,7 +115,8 @@ def _sum_tangent(x, dx, parts):
 
 
 def _advance_frame(coords, xs, ts):
-    """`_advance` with ``dR = R hat(xi)`` (`so3jax._frames`): the update's `Frame` rule."""
+    """`_advance` with ``dR = R hat(xi)`` (`so3jax._engine.passes.frames`): the update's
+    `Frame` rule."""
     (R, u, x, dx), (tR, tu, tx, tdx) = xs, ts
     if any(isinstance(t, Frame) for t in (tu, tx, tdx)):
         return None

@@ -57,8 +57,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from . import _plan
-from ._engine import sweep_chunk, sweep_scalarize
+from ._engine import plan as _plan
+from ._engine.policy import sweep_chunk, sweep_scalarize
 from ._integrators import RKMK4, AbstractLieSolver
 from ._quadrotor import Quadrotor, _restart, position_metrics
 from ._simulate import simulate, simulate_from
@@ -881,7 +881,7 @@ def sweep(
       CPU (several times faster in batches, a few seconds more to compile), the array
       program on a GPU (both latency bound there; the array program compiles several
       times faster, so a sweep finishes sooner unless the same sweep is repeated
-      dozens of times in one process; `so3jax._engine.SWEEP_SCALARIZE`).
+      dozens of times in one process; the engine policy's ``sweep_scalarize``).
 
     **Returns:** a `SweepResult`.
     """
@@ -903,8 +903,8 @@ def sweep(
     dt = float(dt)
     if not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be positive and finite, got {dt}")
-    if quad and scene.sampled:  # inside the jitted chunks the period is traced
-        scene.steps_per_hold(dt)
+    if getattr(scene, "control_period", None) is not None:  # traced inside the chunks
+        scene.steps_per_hold(dt)  # sampled control: dt must divide the period
     threshold = float(threshold)
     if not (0 < threshold <= 2):
         raise ValueError(f"threshold must be in (0, 2] (Psi = 1 - cos(angle)), got {threshold}")

@@ -45,15 +45,13 @@ PARAMS = {
 
 
 class Disturbed(Tracking):
-    """A tracking scene with a constant body disturbance torque ``d``.
+    """A tracking scene whose constant body disturbance torque ``d`` is required.
 
-    ``J Omega' = M + d - Omega x J Omega``; the saved ``M`` is the control torque.
+    ``J Omega' = M + d - Omega x J Omega``; the saved ``M`` is the control torque
+    (`Tracking.disturbance`, which `prepare_scene` now sets on the scene itself).
     """
 
     disturbance: Array
-
-    def torque(self, t, y):
-        return super().torque(t, y) + self.disturbance
 
 
 class ScaledReference(eqx.Module):
@@ -148,13 +146,10 @@ def check_params(params: Mapping | None, grid: bool) -> dict[str, np.ndarray]:
 def prepare_scene(scene: Tracking, names) -> Tracking:
     """The scene with the slots the named parameters need (a disturbance, a scaled reference)."""
     dtype = scene.y0.R.dtype
-    if "disturbance" in names and not isinstance(scene, Disturbed):
-        scene = Disturbed(
-            body=scene.body,
-            controller=scene.controller,
-            reference=scene.reference,
-            y0=scene.y0,
-            disturbance=jnp.zeros(3, dtype),
+    if "disturbance" in names and scene.disturbance is None:
+        # A slot on the scene itself: its torque limit and control period stay.
+        scene = eqx.tree_at(
+            lambda s: s.disturbance, scene, jnp.zeros(3, dtype), is_leaf=lambda a: a is None
         )
     if "reference_amplitude" in names:
         scene = eqx.tree_at(

@@ -24,12 +24,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.custom_derivatives import SymbolicZero
 
-from . import _plan
 from ._control import GeometricController, GeometricGains, _check_gain
-from ._engine import _jvp_through, jit_own, run
-from ._frames import Frame, frame_rule, right_or_zero
+from ._engine import derivatives, plan as _plan, run
+from ._engine.passes.frames import Frame, frame_rule, right_or_zero
+from ._engine.policy import jit_own
 from ._integrators import RKMK4, AbstractLieSolver
 from ._scene import Scene, check_rotation
 from ._simulate import (
@@ -191,14 +190,13 @@ def _integrand_of(*args):
 
 @functools.partial(_integrand_of.defjvp, symbolic_zeros=True)
 def _integrand_of_jvp(primals, tangents):
-    nz = [not isinstance(t, SymbolicZero) for t in tangents]
-    treedef = jax.tree.structure(tuple(primals))
-    return _jvp_through(_integrand_raw, treedef, list(primals), list(tangents), nz)
+    return derivatives.jvp_through(_integrand_raw, derivatives.Flagged.of(primals, tangents))
 
 
 @frame_rule(_integrand_of)
 def _integrand_frame(xs, ts):
-    """The integrand with ``dR = R hat(xi)`` (`so3jax._frames`), and ``dRd = Rd hat(zeta)``
+    """The integrand with ``dR = R hat(xi)`` (`so3jax._engine.passes.frames`), and
+    ``dRd = Rd hat(zeta)``
     if the reference moves too: ``dPsi = (xi - zeta) . vee(Rd^T R)`` and ``d e_Omega =
     dOmega + xi x a - R^T Rd (zeta x Omega_d + dOmega_d)``, ``a = R^T Rd Omega_d``: 14
     operations a column where the dense tangent takes about 60 (``R hat(xi)``, then both

@@ -2,10 +2,10 @@
 
 ``R exp(w)``, ``R cay(u)`` and their increments ``R (exp(w) - I)``, ``R (cay(u) - I)``
 (`so3jax._state` advances a state with them), each a ``jax.custom_jvp`` with its
-closed-form rule, and a `so3jax._frames.Frame` rule (a three-number tangent ``xi`` in
+closed-form rule, and a `so3jax._engine.passes.frames.Frame` rule (a three-number tangent ``xi`` in
 ``dR = R hat(xi)``) for the engine's scalarized Jacobian programs. This is where the
 SO(3) formulas of `so3jax._so3` meet the execution engine: the values the engine's
-CPU programs should materialize are marked here (`so3jax._scalarize.array_cut`), so
+CPU programs should materialize are marked here (`so3jax._engine.passes.cuts.array_cut`), so
 that `so3jax._so3` itself stays pure maths and imports nothing from the engine.
 """
 
@@ -17,8 +17,8 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
-from ._frames import Frame, frame_rule, right_or_zero
-from ._scalarize import array_cut as _array_cut, array_cut_index as _array_cut_index
+from ._engine.passes.cuts import array_cut as _array_cut, array_cut_index as _array_cut_index
+from ._engine.passes.frames import Frame, frame_rule, right_or_zero
 from ._so3 import (
     _ab_coeffs,
     _abc_coeffs,
@@ -128,7 +128,7 @@ def _frame_update(tR, tw, rotate, jacobian):
 
 @frame_rule(_exp_update)
 def _exp_update_frame(xs, ts):
-    """`_exp_update` with ``dR = R hat(xi)`` (`so3jax._frames`): ``R' = R exp(w)`` and
+    """`_exp_update` with ``dR = R hat(xi)`` (`so3jax._engine.passes.frames`): ``R' = R exp(w)`` and
     ``xi' = exp(w)^T xi + J_r(w) dw = xi - A w x xi + B w x (w x xi) + J_r(w) dw``: about
     40 operations a column where ``dR exp(w) + R' hat(J_r(w) dw)`` takes 110."""
     (R, w), (tR, tw) = xs, ts

@@ -15,6 +15,7 @@ from ._scenes import (
     UNWINDING_ANGLE as UNWINDING_ANGLE,
     UNWINDING_RATE as UNWINDING_RATE,
     FreeBody as FreeBody,
+    SampledTracking as SampledTracking,
     Tracking as Tracking,
     dzhanibekov as dzhanibekov,
     free_body as free_body,

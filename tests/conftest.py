@@ -100,7 +100,7 @@ def pytest_collection_modifyitems(config, items):
 
 
 def _count_cuts(jaxpr) -> int:
-    from so3jax._scalarize import _is_cut
+    from so3jax._engine.passes.cuts import _is_cut
 
     n = 0
     for e in jaxpr.eqns:
@@ -119,3 +119,15 @@ def count_cuts():
     """How many fusion cuts (`_scalarize._is_cut` conditionals) a jaxpr holds, nested ones
     included."""
     return _count_cuts
+
+
+@pytest.fixture
+def engine_policy():
+    """``engine_policy(**changes)`` activates the engine's policy with ``changes`` (fields of
+    `so3jax._engine.policy.Policy`) for the rest of the test, and returns it."""
+    import contextlib
+
+    from so3jax._engine import policy
+
+    with contextlib.ExitStack() as stack:
+        yield lambda **changes: stack.enter_context(policy.using(**changes))

@@ -339,7 +339,7 @@ def test_second_derivatives(free):
     forward) equals ``jacfwd`` of ``jacfwd`` through `diffrax.ForwardMode`, and so does
     reverse over forward (``jacrev`` of ``jacfwd``: the Jacobian program is a while loop,
     which JAX differentiates forward only, so its transpose runs by columns,
-    `_engine.forward_differentiated`, so JAX's "Reverse-mode differentiation does not
+    `_engine.tangents.forward_differentiated`, so JAX's "Reverse-mode differentiation does not
     work for lax.while_loop" is never raised); through all 30 floats the default
     derivatives (a ``linear_call``) have first derivatives only, and a second one says
     which adjoint to pass (not a bare ``AssertionError``)."""

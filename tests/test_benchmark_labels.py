@@ -22,17 +22,17 @@ def _bench_module(name):
 
 def _jaxpr_size(fn, *args) -> int:
     """The printed jaxpr's length, with the engine's loops as XLA would run them by
-    default: a hoisted array program's reductions are written out (`_engine._unrolled`),
+    default: a hoisted array program's reductions are written out
+    (`_engine.passes.unroll._unrolled`),
     which makes it the larger one."""
     import jax
 
     from so3jax import _engine
 
-    hoist, _engine.HOIST_LOOPS = _engine.HOIST_LOOPS, False
     try:
-        return len(str(jax.make_jaxpr(fn)(*args)))
+        with _engine.policy.using(passes=_engine.policy.current().passes - {"hoist"}):
+            return len(str(jax.make_jaxpr(fn)(*args)))
     finally:
-        _engine.HOIST_LOOPS = hoist
         jax.clear_caches()  # (the choice is made when a program is traced)
 
 
@@ -115,7 +115,7 @@ def test_unrolled_step_loops_change_the_program_not_the_results():
 
     plain, size = run(scene), lowered_size()
     with unroll["unrolled"](3):  # 7 steps: two unrolled iterations and a remainder
-        assert _engine.SCAN_UNROLL == 3
+        assert _engine.policy.current().scan_unroll == 3
         assert lowered_size() > size  # the step (a called function) appears 3 times
         np.testing.assert_allclose(run(scene), plain, rtol=0, atol=1e-13)
-    assert _engine.SCAN_UNROLL == 1 and lowered_size() == size
+    assert _engine.policy.current().scan_unroll == 1 and lowered_size() == size

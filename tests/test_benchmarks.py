@@ -203,3 +203,18 @@ def test_allocator_quick(tmp_path):
         assert r["forward_ratio"] == pytest.approx(r["seconds"] / fwd)
         base = rows[("glibc defaults", derivative)]["seconds"]
         assert r["time_ratio"] == pytest.approx(r["seconds"] / base)
+
+
+@pytest.mark.slow
+def test_ablation_quick(tmp_path):
+    """Each configuration compiles its own program: with every pass off a run compiles
+    another program than with all, and computes the same numbers to round-off."""
+    res = _run("ablation.py", tmp_path)
+    rows = {(r["workload"], r["config"]): r for r in res["rows"]}
+    assert set(rows) == {("run", "all passes"), ("run", "none")}
+    base, none = rows[("run", "all passes")], rows[("run", "none")]
+    assert base["ratio"] == 1.0 and base["same_program_as_base"]
+    assert not none["same_program_as_base"] and none["passes_off"] == res["passes"]
+    assert none["max_rel_diff"] < 1e-12
+    for r in rows.values():
+        assert r["run_s"] == r["run_s_range"][0] == min(r["rounds"]) > 0 and r["compile_s"] > 0

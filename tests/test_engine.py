@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 import so3jax as s
-from so3jax import _engine, _scalarize as sc
+from so3jax import _engine
+from so3jax._engine.passes import cuts, scalarize as sc
 from so3jax._simulate import _simulate
 from so3jax._tune import _check_weights, _rollout, with_gains, with_initial_state, with_start
 
@@ -117,16 +118,17 @@ def test_gradients_equal_autodiff(method, monkeypatch):
     its reverse mode (RKMK45: 4.5 against 10.2 s); reverse-mode autodiff is the
     reference of the seed tests below."""
     calls = []
-    one_pass = _engine._jacobian_jvp
+    one_pass = _engine.derivatives._jacobian_jvp
 
     def spy(*args):
         calls.append(sum(np.size(t) for t in args[4]))  # differentiated scalars
         return one_pass(*args)
 
-    monkeypatch.setattr(_engine, "_jacobian_jvp", spy)
+    monkeypatch.setattr(_engine.derivatives, "_jacobian_jvp", spy)
     ref = jax.jit(jax.jacfwd(_free_body_cost("autodiff", method)))(X0)
     assert _rel(_jit_grad(_free_body_cost("auto", method))(X0), ref) < 1e-10
-    assert len(calls) == 1 and 4 <= calls[0] <= _engine.FORWARD_JACOBIAN_MAX, calls  # one pass
+    limit = _engine.policy.current().forward_jacobian_max
+    assert len(calls) == 1 and 4 <= calls[0] <= limit, calls  # one pass
     if type(method) in ADJOINT_CHECKED and getattr(method, "coords", "exp") == "exp":
         assert _rel(_jit_grad(_free_body_cost("adjoint", method))(X0), ref) < 1e-10
 
@@ -224,7 +226,7 @@ def _toy(P, program, K=None):
 
 
 def test_checkpointed_jvp_differentiates_each_loop_once(monkeypatch):
-    """JAX's ``jvp`` of the checkpointed program (`_engine._checkpointed_jvp`) starts the
+    """JAX's ``jvp`` of the checkpointed program (`_engine.derivatives.Autodiff`) starts the
     carry leaves that a step makes nonzero with zero tangents, so each loop is
     differentiated once (JAX's own fixed point: two passes over a loop whose carry
     tangents start as symbolic zeros, each differentiating the loops inside it again).
@@ -243,7 +245,9 @@ def test_checkpointed_jvp_differentiates_each_loop_once(monkeypatch):
     counts = {}
     for settle in (True, False):
         if not settle:
-            monkeypatch.setattr(_engine, "_settle_carry_tangents", lambda *a: (a[3], a[4]))
+            monkeypatch.setattr(
+                _engine.derivatives, "_settle_carry_tangents", lambda *a: (a[3], a[4])
+            )
         calls.clear()
         g = jax.grad(_toy)(1.7, "array")
         counts[settle] = len(calls)
@@ -332,17 +336,17 @@ def test_second_derivatives_equal_autodiff(n, monkeypatch):
     ``jacfwd`` of ``jacfwd`` and ``jvp`` of ``jacfwd`` of a jitted run break when the
     ``linear_call`` batching rule batches every output under a ``vmap`` nothing in the
     call depends on (docs/engine.md, "Second derivatives"). Through few scalars a batch
-    of 40 differentiates its one-pass Jacobian program scalarized (`_engine._dual_jvp`)."""
+    of 40 differentiates its one-pass Jacobian program scalarized (`_engine.layout._dual_jvp`)."""
     p = jnp.linspace(1.3, 0.7, n)
     u = jnp.linspace(-1.0, 1.0, n)
     scalarized = []
-    jac_scalar = _engine._Loop.jac_scalar
+    jac_scalar = _engine.programs.Programs.jac_scalar
 
     def spy(self, *args, **kwargs):
         scalarized.append(1)
         return jac_scalar(self, *args, **kwargs)
 
-    monkeypatch.setattr(_engine._Loop, "jac_scalar", spy)
+    monkeypatch.setattr(_engine.programs.Programs, "jac_scalar", spy)
 
     def mean(program, jit, ps):
         one = lambda q: _toy_second(q, program, jit)  # noqa: E731
@@ -357,10 +361,14 @@ def test_second_derivatives_equal_autodiff(n, monkeypatch):
         ps = p * jnp.linspace(0.8, 1.2, 3)[:, None]
         big = mean(program, True, p * jnp.linspace(0.8, 1.2, 40)[:, None])
         mid = mean(program, True, p * jnp.linspace(0.8, 1.2, 20)[:, None])
-        assert _engine.BATCHED_LAYOUT["jacobian"][0] <= 20 < _engine.BATCHED_LAYOUT["jvp"][0]
+        assert (
+            dict(_engine.policy.DEFAULT.batched_layout)["jacobian"][0]
+            <= 20
+            < dict(_engine.policy.DEFAULT.batched_layout)["jvp"][0]
+        )
         J = jax.jit  # one compiled program per case (eager ones compile piece by piece)
         out = {"hessian(mean jitted vmap 40)": J(jax.hessian(big))(jnp.ones(n))}
-        if n > _engine.FORWARD_JACOBIAN_MAX:
+        if n > _engine.policy.current().forward_jacobian_max:
             return out  # JAX's own jvp there: one case guards the composition
         if program == "auto":
             # The gradient's (the `custom_jvp` function, which JAX batches too), and in the
@@ -400,7 +408,7 @@ def test_second_derivatives_differentiate_each_loop_once(monkeypatch):
     Jacobian program, whose carry tangents start as symbolic zeros: JAX's fixed point
     differentiated the loop of saved points twice, and the step loop inside it on each
     pass, in the array and the scalarized program alike. `_dual_jvp` starts them with
-    zeros (`_engine._settle_jacobian_tangents`): each loop once. Same Hessian."""
+    zeros (`_engine.derivatives._settle_jacobian_tangents`): each loop once. Same Hessian."""
     from jax._src.interpreters import ad
     from jax.extend.core.primitives import scan_p
 
@@ -420,7 +428,9 @@ def test_second_derivatives_differentiate_each_loop_once(monkeypatch):
     counts = {}
     for settle in (True, False):
         if not settle:
-            monkeypatch.setattr(_engine, "_settle_jacobian_tangents", lambda *a: (a[-2], a[-1]))
+            monkeypatch.setattr(
+                _engine.derivatives, "_settle_jacobian_tangents", lambda *a: (a[-2], a[-1])
+            )
         calls.clear()
         H = jax.hessian(mean("auto"))(jnp.ones(2))
         counts[settle] = len(calls)
@@ -431,13 +441,13 @@ def test_second_derivatives_differentiate_each_loop_once(monkeypatch):
 
 def test_reverse_over_reverse_transposes_by_columns(monkeypatch):
     """``jacrev`` of ``jacrev`` transposes the second derivative's ``linear_call``
-    (`_engine._linear_tangent`). Through at most 8 scalars its transpose runs the
+    (`_engine.tangents._linear_tangent`). Through at most 8 scalars its transpose runs the
     fast program once per unit tangent (`_transpose_by_columns`: scalarized over a batch
     of 40 here), through more JAX's transpose of the array program (10 scalars: a
     gradient through 2 of them, differentiated through all). Both equal autodiff."""
-    used, by_columns = [], _engine._transpose_by_columns
+    used, by_columns = [], _engine.tangents._transpose_by_columns
     monkeypatch.setattr(
-        _engine, "_transpose_by_columns", lambda *a: used.append(1) or by_columns(*a)
+        _engine.tangents, "_transpose_by_columns", lambda *a: used.append(1) or by_columns(*a)
     )
     ps = jnp.linspace(0.8, 1.2, 40)[:, None]
 
@@ -483,17 +493,17 @@ def test_adjoint_program_second_derivatives_raise_clearly():
 
 def test_batched_programs_are_traced_once(monkeypatch):
     """Under ``vmap`` the array programs are traced once per call: the ``custom_vmap`` and
-    its batching rule share one jaxpr (`_engine._dual`), rather than the rule tracing it
+    its batching rule share one jaxpr (`_engine.layout._dual`), rather than the rule tracing it
     again under its ``vmap``: batching the first trace's jaxpr is cheaper."""
     traced = {"fwd_array": 0, "jac_array": 0}
     for name in traced:
-        original = getattr(_engine._Loop, name)
+        original = getattr(_engine.programs.Programs, name)
 
         def spy(self, *args, _original=original, _name=name):
             traced[_name] += 1
             return _original(self, *args)
 
-        monkeypatch.setattr(_engine._Loop, name, spy)
+        monkeypatch.setattr(_engine.programs.Programs, name, spy)
     ps = jnp.array([1.7, -0.4, 2.5])  # fewer runs than the scalarized program takes
     # A jitted run, as `simulate` and `expected_cost` are: its forward program is traced
     # (batched) before ``grad`` linearizes it.
@@ -550,7 +560,7 @@ def _spy_batch_jaxpr(monkeypatch) -> list:
 
 def test_batched_array_loops_are_batched_once(monkeypatch):
     """Below the scalarized program's batch size, ``vmap`` runs the array program with its
-    loops' carries settled up front (`_engine._Traced`): JAX batches each loop body once
+    loops' carries settled up front (`_engine.layout._Traced`): JAX batches each loop body once
     (its own fixed point would batch the outer body three times here, and the inner one
     once per pass), what never depends on the batch stays unbatched, and the values are
     those of single runs."""
@@ -684,8 +694,8 @@ def test_scalarized_tangent_program_for_large_batches():
     """32 starts or more: the tangent program runs scalarized (fusion cuts included).
     With two gains the default reverse mode takes the Jacobian's columns from it, and
     equals JAX's autodiff; so does ``jacfwd``. The columns are the outer axis of every
-    tangent component, ``(2, B)`` arrays, not ``(B, 2)`` (`_engine._columns_outside`)."""
-    B = _engine.batched_layout("jacobian")[1]
+    tangent component, ``(2, B)`` arrays, not ``(B, 2)`` (`_engine.layout._columns_outside`)."""
+    B = _engine.policy.batched_layout("jacobian")[1]
     for save_every in (1, 2):  # the integral summed in the carry; saved points
         cost = _seed_mean_cost(jax.random.PRNGKey(3), B, N, save_every)
         f = _jit_grad(cost("auto"))
@@ -700,38 +710,39 @@ def test_scalarized_tangent_program_for_large_batches():
     assert f"tensor<2x{B}xf64>" in hlo and f"tensor<{B}x2xf64>" not in hlo
     # the Hessian's jvp of that program too (its values: test_second_derivatives_...),
     # where it runs scalarized (from BATCHED_LAYOUT["jvp"]'s runs; here made B's)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setitem(_engine.BATCHED_LAYOUT, "jvp", (B, B))
+    layouts = dict(_engine.policy.current().batched_layout)
+    with _engine.policy.using(batched_layout={**layouts, "jvp": (B, B)}):
         hlo = jax.jit(jax.hessian(cost("auto"))).lower(K0).as_text()
     assert f"tensor<{B}x2xf64>" not in hlo
 
 
-def test_scalarized_jacobian_cuts_what_its_columns_consume(monkeypatch):
+def test_scalarized_jacobian_cuts_what_its_columns_consume(engine_policy):
     """From `COLUMN_CUTS_FROM` runs the scalarized Jacobian program also cuts the values
-    its tangent columns consume (`so3jax._scalarize.COLUMN_CUT_CONE`): more cuts in the
+    its tangent columns consume (the policy's ``column_cut_cone``): more cuts in the
     program, and ``grad`` still equals JAX's autodiff (here from 16 runs, at 16)."""
-    B = _engine.batched_layout("jacobian")[1]
+    B = _engine.policy.batched_layout("jacobian")[1]
     cost = _seed_mean_cost(jax.random.PRNGKey(5), B, N)
 
     def cuts():
         jax.clear_caches()  # JAX keeps the traced derivative of the run's jitted program
         return _jit_grad(cost("auto")).lower(K0).as_text().count("stablehlo.case")
 
-    monkeypatch.setattr(_engine, "COLUMN_CUTS_FROM", B + 1)
-    plain = cuts()
-    monkeypatch.setattr(_engine, "COLUMN_CUTS_FROM", B)
+    with _engine.policy.using(column_cuts_from=B + 1):
+        plain = cuts()
+    engine_policy(column_cuts_from=B)
     assert cuts() > plain > 0
     ref = _jit_grad(cost("autodiff"))(K0)
     assert _rel(_jit_grad(cost("auto"))(K0), ref) < 1e-10
     jax.clear_caches()  # leave no program with these cuts to later tests
 
 
-def test_scalarized_jacobian_without_cuts(monkeypatch):
+def test_scalarized_jacobian_without_cuts(engine_policy):
     """The scalarized Jacobian program without fusion cuts (a GPU's, from 4096 runs there),
     with its columns outside the runs: ``grad`` and ``jacfwd`` equal JAX's autodiff,
     here at 32 runs on the CPU."""
     B = 32
-    monkeypatch.setitem(_engine.BATCHED_LAYOUT, "jacobian", (B, None))
+    layouts = dict(_engine.policy.current().batched_layout)
+    engine_policy(batched_layout={**layouts, "jacobian": (B, None)})
     cost = _seed_mean_cost(jax.random.PRNGKey(4), B, N - 1)
     jf = jax.jit(jax.jacfwd(cost("auto")))
     hlo = jf.lower(K0).as_text()
@@ -746,28 +757,31 @@ def test_batch_tiles_policy(monkeypatch):
     ``192 / (1 + columns)`` runs (multiples of 8) that cover the batch: 64 for two gains
     (from 96 runs), 32 for six; other programs, smaller batches, runs that observe more
     than a few scalars per saved point and other backends run whole."""
-    assert _engine.batch_tiles("jacobian", 256, 2) == (4, 64)
-    assert _engine.batch_tiles("jacobian", 256, 6) == (8, 32)
-    assert _engine.batch_tiles("jacobian", 100, 2) == (2, 56)
-    assert _engine.batch_tiles("jacobian", 95, 2) == (1, 95)
-    assert _engine.batch_tiles("run", 4096) == (1, 4096)
-    assert _engine.batch_tiles("jacobian", 256, 2, observed=40) == (1, 256)  # trajectories
+    assert _engine.passes.tiles.batch_tiles("jacobian", 256, 2) == (4, 64)
+    assert _engine.passes.tiles.batch_tiles("jacobian", 256, 6) == (8, 32)
+    assert _engine.passes.tiles.batch_tiles("jacobian", 100, 2) == (2, 56)
+    assert _engine.passes.tiles.batch_tiles("jacobian", 95, 2) == (1, 95)
+    assert _engine.passes.tiles.batch_tiles("run", 4096) == (1, 4096)
+    assert _engine.passes.tiles.batch_tiles("jacobian", 256, 2, observed=40) == (
+        1,
+        256,
+    )  # trajectories
     for B in range(96, 1100, 7):
-        n, size = _engine.batch_tiles("jacobian", B, 2)
+        n, size = _engine.passes.tiles.batch_tiles("jacobian", B, 2)
         assert size % 8 == 0 and n * size >= B > (n - 1) * size and 40 <= size <= 96
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    assert _engine.batch_tiles("jacobian", 256, 2) == (1, 256)
+    assert _engine.passes.tiles.batch_tiles("jacobian", 256, 2) == (1, 256)
 
 
-def test_tiled_jacobian_equals_autodiff(monkeypatch):
-    """A batch whose Jacobian program runs in tiles (`_engine._in_tiles`; here 3 tiles of 17
+def test_tiled_jacobian_equals_autodiff(engine_policy):
+    """A batch whose Jacobian program runs in tiles (`_engine.passes.tiles._in_tiles`; here 3
+    tiles of 17
     over 50 runs, the last padded with a copy of the last run): ``grad``, ``jacfwd`` and
     ``jax.hessian`` equal JAX's autodiff, and the tiles are in the program (a loop over 3
     tiles whose tangents are ``(2, 17)`` arrays)."""
-    monkeypatch.setitem(_engine.BATCH_TILE, "jacobian", 48)  # 16 runs a tile for 2 columns
-    monkeypatch.setattr(_engine, "TILE_MULTIPLE", 1)
+    engine_policy(tile_values=48, tile_multiple=1)  # 16 runs a tile for 2 columns
     B = 50
-    assert _engine.batch_tiles("jacobian", B, 2) == (3, 17)
+    assert _engine.passes.tiles.batch_tiles("jacobian", B, 2) == (3, 17)
     cost = _seed_mean_cost(jax.random.PRNGKey(8), B, N - 1)
     ref = _jit_grad(cost("autodiff"))(K0)
     f = _jit_grad(cost("auto"))
@@ -785,7 +799,7 @@ def test_scalarized_jacobian_of_trajectories():
     saved point has many components (``R``, ``Omega``, ``Rd``, ``M``, ``e_R``,
     ``e_Omega``), values and columns. ``jacfwd`` and ``grad`` equal JAX's autodiff, and
     the value equals the forward run."""
-    B = _engine.batched_layout("jacobian")[1]
+    B = _engine.policy.batched_layout("jacobian")[1]
     sc0 = _seed()
     R0, W0 = s.initial_states(jax.random.PRNGKey(6), B)
 
@@ -848,9 +862,9 @@ def test_jacobian_observation_kinds(monkeypatch):
         return f
 
     kinds = []
-    obs_kinds = _engine._Loop.obs_kinds
+    obs_kinds = _engine.programs.Programs.obs_kinds
     monkeypatch.setattr(
-        _engine._Loop, "obs_kinds", lambda *a: kinds.append(obs_kinds(*a)) or kinds[-1]
+        _engine.programs.Programs, "obs_kinds", lambda *a: kinds.append(obs_kinds(*a)) or kinds[-1]
     )
     P = (jnp.asarray(2.0), jnp.array([0.4, 0.1, -0.3]))
     Rs = s.exp(jax.random.normal(jax.random.PRNGKey(3), (32, 3)))
@@ -868,22 +882,25 @@ def test_jacobian_observation_kinds(monkeypatch):
             for g, r in zip(jax.tree.leaves(got), jax.tree.leaves(ref), strict=True):
                 assert _rel(g, r) < 1e-10, (B, d.__name__)
     # leaves in key order: R, RT, prod, ref, w
-    K = _engine
+    K = _engine.passes.frames
     assert kinds and set(kinds) == {(K.OBS_RIGHT, K.OBS_LEFT, K.OBS_DENSE, K.OBS_ZERO, K.OBS_DENSE)}
 
 
 def test_frame_dense_and_its_transpose():
-    """`_engine._frame_dense` is `so3jax._frames.dense` (right and left frames), and JAX's
+    """`_engine.passes.frames._frame_dense` is `so3jax._engine.passes.frames.dense` (right and
+    left frames), and JAX's
     transposes of the two agree."""
-    from so3jax._frames import Frame, dense
+    from so3jax._engine.passes.frames import Frame, dense
 
     R = jax.random.normal(jax.random.PRNGKey(1), (4, 3, 3))
     xi = jax.random.normal(jax.random.PRNGKey(2), (4, 3))
     ct = jax.random.normal(jax.random.PRNGKey(3), (4, 3, 3))
     for left in (False, True):
         want = dense(R, Frame(xi, left))
-        assert _rel(_engine._frame_dense(R, xi, left), want) < 1e-15
-        t_got = jax.linear_transpose(lambda x: _engine._frame_dense(R, x, left), xi)(ct)[0]
+        assert _rel(_engine.passes.frames._frame_dense(R, xi, left), want) < 1e-15
+        t_got = jax.linear_transpose(lambda x: _engine.passes.frames._frame_dense(R, x, left), xi)(
+            ct
+        )[0]
         t_want = jax.linear_transpose(lambda x: dense(R, Frame(x, left)), xi)(ct)[0]
         assert _rel(t_got, t_want) < 1e-14
 
@@ -908,13 +925,13 @@ def test_one_pass_jacobian_through_gains_and_initial_rates(monkeypatch):
 
     x = jnp.array([3.0, 1.5, 0.1, -0.2, 0.3])
     seen = []
-    masks = _engine._tangent_masks
+    masks = _engine.masks._tangent_masks
 
     def spy(*args, **kwargs):
         seen.append(masks(*args, **kwargs))
         return seen[-1]
 
-    monkeypatch.setattr(_engine, "_tangent_masks", spy)
+    monkeypatch.setattr(_engine.derivatives, "_tangent_masks", spy)
     v, g = jax.value_and_grad(cost)(x, R0[0])
     monkeypatch.undo()
     # carry float leaves: body attitude, reference attitude, rates and memory
@@ -924,7 +941,7 @@ def test_one_pass_jacobian_through_gains_and_initial_rates(monkeypatch):
 
 
 def test_dependence_walk():
-    """`_engine._depends` keeps stacked parts apart, ignores flags, takes loops whole."""
+    """`_engine.masks._depends` keeps stacked parts apart, ignores flags, takes loops whole."""
 
     def f(a, b, c):
         s = jnp.stack([a, b]) * 2.0
@@ -934,17 +951,17 @@ def test_dependence_walk():
         return s[0], frozen, looped, ok.astype(a.dtype)
 
     x = jnp.ones(3)
-    assert _engine._depends(f, [x, x, x], [True, False, False]) == [True, False, True, False]
-    assert _engine._depends(f, [x, x, x], [False, True, False]) == [False, True, False, False]
-    assert _engine._depends(f, [x, x, x], [False, False, True]) == [False, False, True, False]
+    assert _engine.masks._depends(f, [x, x, x], [True, False, False]) == [True, False, True, False]
+    assert _engine.masks._depends(f, [x, x, x], [False, True, False]) == [False, True, False, False]
+    assert _engine.masks._depends(f, [x, x, x], [False, False, True]) == [False, False, True, False]
 
     def g(a, b):  # a fusion cut keeps the parts apart: its integer index carries no tangent
         s = jnp.stack([a, b])
-        (t,) = sc.array_cut(sc.array_cut_index(s), s)
+        (t,) = cuts.array_cut(cuts.array_cut_index(s), s)
         return t[0], t[1]
 
-    assert _engine._depends(g, [x, x], [True, False]) == [True, False]
-    assert _engine._depends(g, [x, x], [False, True]) == [False, True]
+    assert _engine.masks._depends(g, [x, x], [True, False]) == [True, False]
+    assert _engine.masks._depends(g, [x, x], [False, True]) == [False, True]
 
 
 def test_gpu_layout_table(monkeypatch):
@@ -956,7 +973,7 @@ def test_gpu_layout_table(monkeypatch):
     would cost the suite seconds."""
     sc = s.scenes.seed()
     R0s = s.random_rotation(jax.random.key(4), (64,))
-    big = jnp.broadcast_to(R0s[0], (_engine.GPU_LAYOUT["run"][0], 3, 3))
+    big = jnp.broadcast_to(R0s[0], (dict(_engine.policy.DEFAULT.gpu_layout)["run"][0], 3, 3))
 
     def batch(R0s, scalarize=None):
         return jax.vmap(
@@ -973,17 +990,29 @@ def test_gpu_layout_table(monkeypatch):
 
         return jax.jacfwd(cost)(jnp.array([8.81, 2.54]))
 
-    assert _engine.batched_layout("run") == _engine.BATCHED_LAYOUT["run"]
-    assert _engine.BATCHED_LAYOUT["run"][0] <= 64  # scalarized on the CPU
-    assert _engine.BATCHED_LAYOUT["jacobian"][0] <= 64
+    assert (
+        _engine.policy.batched_layout("run") == dict(_engine.policy.DEFAULT.batched_layout)["run"]
+    )
+    assert dict(_engine.policy.DEFAULT.batched_layout)["run"][0] <= 64  # scalarized on the CPU
+    assert dict(_engine.policy.DEFAULT.batched_layout)["jacobian"][0] <= 64
     cpu_64 = len(str(jax.make_jaxpr(jacobian)(R0s)))
     jax.clear_caches()  # batched jaxprs inside simulate may hold the CPU's layout
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     try:
-        assert _engine.batched_layout("run") == _engine.GPU_LAYOUT["run"]
-        assert _engine.batched_layout("jacobian") == _engine.GPU_LAYOUT["jacobian"]
-        assert _engine.batched_layout("jvp") == _engine.GPU_LAYOUT["jvp"]
-        assert _engine.batched_layout("adjoint") == _engine.BATCHED_LAYOUT["adjoint"]
+        assert (
+            _engine.policy.batched_layout("run") == dict(_engine.policy.DEFAULT.gpu_layout)["run"]
+        )
+        assert (
+            _engine.policy.batched_layout("jacobian")
+            == dict(_engine.policy.DEFAULT.gpu_layout)["jacobian"]
+        )
+        assert (
+            _engine.policy.batched_layout("jvp") == dict(_engine.policy.DEFAULT.gpu_layout)["jvp"]
+        )
+        assert (
+            _engine.policy.batched_layout("adjoint")
+            == dict(_engine.policy.DEFAULT.batched_layout)["adjoint"]
+        )
         small, array = size(R0s), size(R0s, False)
         assert abs(small - array) < 0.05 * array  # the array program
         assert size(big) > 1.1 * size(big, False)  # the scalarized program
@@ -992,20 +1021,22 @@ def test_gpu_layout_table(monkeypatch):
     finally:
         monkeypatch.undo()
         jax.clear_caches()
-    assert _engine.batched_layout("run") == _engine.BATCHED_LAYOUT["run"]
+    assert (
+        _engine.policy.batched_layout("run") == dict(_engine.policy.DEFAULT.batched_layout)["run"]
+    )
     assert cpu_64 > 1.2 * gpu_64  # the scalarized Jacobian program on the CPU only
 
 
 def test_sweep_program_default_per_platform(monkeypatch):
     """`sweep` leaves its program to the engine unless told: scalarized on a CPU, the
-    array program on a GPU (`_engine.SWEEP_SCALARIZE`); a forced choice is kept."""
+    array program on a GPU (`_engine.policy.Policy.sweep_scalarize`); a forced choice is kept."""
     from so3jax import _sweep
 
     class FakeGPU:
         platform = "gpu"
 
-    assert _engine.sweep_scalarize(jax.devices("cpu")) is True
-    assert _engine.sweep_scalarize([FakeGPU()]) is False
+    assert _engine.policy.sweep_scalarize(jax.devices("cpu")) is True
+    assert _engine.policy.sweep_scalarize([FakeGPU()]) is False
     seen, run_chunk = [], _sweep._run_chunk
 
     def recorded(*args):
@@ -1038,25 +1069,25 @@ def test_sweep_chunk_default_per_platform():
             return None if self.limit is None else {"bytes_limit": self.limit}
 
     cpu = jax.devices("cpu")[0]
-    assert _engine.sweep_chunk([cpu], 1001, 8) == 1024
-    assert _engine.sweep_chunk([cpu] * 3, 10**6, 8) == 3 * 1024
+    assert _engine.policy.sweep_chunk([cpu], 1001, 8) == 1024
+    assert _engine.policy.sweep_chunk([cpu] * 3, 10**6, 8) == 3 * 1024
     big = 141 * 2**30
-    assert _engine.sweep_chunk([FakeGPU(big)], 1001, 8) == 65536
-    assert _engine.sweep_chunk([FakeGPU(big)] * 2, 1001, 4) == 2 * 65536
+    assert _engine.policy.sweep_chunk([FakeGPU(big)], 1001, 8) == 65536
+    assert _engine.policy.sweep_chunk([FakeGPU(big)] * 2, 1001, 4) == 2 * 65536
     # 40 GiB, 1001 points of 48 float64 numbers: half holds 55,868 runs.
     per = (40 * 2**30 // 2) // (1001 * 48 * 8)
     assert 1024 < per < 65536
-    assert _engine.sweep_chunk([FakeGPU(40 * 2**30)], 1001, 8) == per
+    assert _engine.policy.sweep_chunk([FakeGPU(40 * 2**30)], 1001, 8) == per
     # The smallest device decides; unknown memory counts as 16 GiB; never below 1024.
     small = [FakeGPU(big), FakeGPU(40 * 2**30)]
-    assert _engine.sweep_chunk(small, 1001, 8) == 2 * per
-    assert _engine.sweep_chunk([FakeGPU(None)], 1001, 8) == (8 * 2**30) // (1001 * 384)
-    assert _engine.sweep_chunk([FakeGPU("raise")], 10**6, 8) == 1024
+    assert _engine.policy.sweep_chunk(small, 1001, 8) == 2 * per
+    assert _engine.policy.sweep_chunk([FakeGPU(None)], 1001, 8) == (8 * 2**30) // (1001 * 384)
+    assert _engine.policy.sweep_chunk([FakeGPU("raise")], 10**6, 8) == 1024
 
 
 def test_array_programs_cut_where_xla_would_recompute(monkeypatch, count_cuts):
     """On the CPU the array programs' derivative rules and Runge-Kutta stages go through
-    fusion cuts (`sc.array_cut_index`): the Jacobian program over a small batch has them,
+    fusion cuts (`cuts.array_cut_index`): the Jacobian program over a small batch has them,
     a single RKMK4 run's forward pass none (its stages cut only when differentiated),
     RKMK45's forward pass one per stage read three times or more; a GPU none."""
     sc0 = s.scenes.seed()
@@ -1091,23 +1122,23 @@ def _compiled_text(f, *args) -> str:
 
 
 def _hoisted_in(text: str) -> bool:
-    """Whether a compiled program holds a loop `_engine._hoisted` made one kernel. XLA
+    """Whether a compiled program holds a loop `_engine.passes.hoist._hoisted` made one kernel. XLA
     tags small loops of its own with ``xla_cpu_small_call`` too (JAX 0.12's XLA also
     some that `_hoisted` left alone), but only `_hoisted` keeps its call from inlining."""
     return 'inlineable="false"' in text
 
 
 #: Tests that force hoisting on: only on the jaxlib releases the suite has passed on
-#: with it (`_engine.HOIST_VERIFIED`); elsewhere the engine leaves it off.
+#: with it (`_engine._jax.TESTED`); elsewhere the engine leaves it off.
 needs_hoisting = pytest.mark.skipif(
-    not _engine.hoisting_verified(), reason="hoisting is off on this jaxlib (HOIST_VERIFIED)"
+    not _engine.policy.hoisting_verified(), reason="hoisting is off on this jaxlib (HOIST_VERIFIED)"
 )
 
 
 @needs_hoisting
 @pytest.mark.parametrize("runs", [1, 40])
-def test_hoisted_loops_equal_the_default_runtime(runs, monkeypatch):
-    """Loops compiled as one kernel (`_engine._hoisted`) give XLA's default runtime's
+def test_hoisted_loops_equal_the_default_runtime(runs, engine_policy):
+    """Loops compiled as one kernel (`_engine.passes.hoist._hoisted`) give XLA's default runtime's
     numbers: a single run (array program) and 40 runs (scalarized), forward pass,
     ``grad`` and ``jacfwd`` (the one-pass Jacobian program), in one process."""
     R0, W0 = s.initial_states(jax.random.key(3), runs)
@@ -1127,7 +1158,8 @@ def test_hoisted_loops_equal_the_default_runtime(runs, monkeypatch):
     k = jnp.array([8.81, 2.54])
     out = {}
     for hoist in (True, False):
-        monkeypatch.setattr(_engine, "HOIST_LOOPS", hoist)
+        passes = _engine.policy.PASSES - ({"hoist"} if not hoist else set())
+        engine_policy(passes=passes)
         jax.clear_caches()  # the choice is made when a program is traced
         out[hoist] = {}
         fns = {"value": cost, "grad": jax.grad(cost)}
@@ -1143,12 +1175,12 @@ def test_hoisted_loops_equal_the_default_runtime(runs, monkeypatch):
     jax.clear_caches()
 
 
-def test_hoisted_call_returns_its_inputs(monkeypatch):
+def test_hoisted_call_returns_its_inputs(engine_policy):
     """The call `_hoisted` makes returns its inputs after the loop's outputs, so they stay
     live to its end: on JAX 0.11 and 0.12 XLA otherwise gave an input's memory to a value
     inside the loop, and its older emitter aborted the process (CI's JAX 0.10 never
     did, so this checks the program's form). Traces only."""
-    monkeypatch.setattr(_engine, "HOIST_LOOPS", True)
+    engine_policy(passes=_engine.policy.PASSES)
     step = lambda P, c: jnp.tanh(P[0] * c + P[1])
     f = lambda b: _engine.run(step, lambda P, c: c, (0.5, b), jnp.ones(3), 5)[0]
 
@@ -1183,7 +1215,9 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
 
     # 20 runs: the array program, vmapped (its dot stays a dot), over the 1 kB under
     # which XLA hoists a loop itself (``xla_cpu_small_while_loop_byte_threshold``).
-    monkeypatch.setitem(_engine.BATCHED_LAYOUT, "run", (None, None))  # (array programs)
+    layouts = dict(_engine.policy.current().batched_layout)
+    array_only = _engine.policy.using(batched_layout={**layouts, "run": (None, None)})
+    array_only.__enter__()  # (array programs, until the policy is restored below)
     A, bs = jnp.eye(3) * 0.5, jnp.zeros((20, 3))
     text = _compiled_text(jax.vmap(lambda b: loop(step, (A, b), jnp.ones(3))), bs)
     assert not _hoisted_in(text)
@@ -1220,12 +1254,11 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
             want.append(c)
         np.testing.assert_allclose(got, jnp.broadcast_to(jnp.stack(want), got.shape), rtol=1e-14)
 
-    monkeypatch.undo()  # (the engine's own layouts again)
-    monkeypatch.setattr(_engine, "HOIST_MAX_BYTES", 1000)  # 200 float64 runs: over
-    batch = jax.vmap(lambda b: loop(elementwise, (0.5, b), jnp.ones(3)))
-    assert not _hoisted_in(_compiled_text(batch, jnp.zeros((200, 3))))
-    assert _hoisted_in(_compiled_text(batch, jnp.zeros((100, 3))))
-    monkeypatch.undo()
+    array_only.__exit__(None, None, None)  # (the engine's own layouts again)
+    with _engine.policy.using(hoist_max_bytes=1000):  # 200 float64 runs: over
+        batch = jax.vmap(lambda b: loop(elementwise, (0.5, b), jnp.ones(3)))
+        assert not _hoisted_in(_compiled_text(batch, jnp.zeros((200, 3))))
+        assert _hoisted_in(_compiled_text(batch, jnp.zeros((100, 3))))
 
     starts = jnp.asarray(np.random.default_rng(0).normal(size=(1500, 3)))  # 12 kB a leaf
     runs = lambda b: jax.vmap(lambda c: loop(elementwise, (0.5, b), c))(starts)
@@ -1249,7 +1282,8 @@ def _reductions(jaxpr) -> list:
 
 
 def test_small_reductions_written_out_term_by_term():
-    """`_engine._unrolled` (what lets derivative programs' loops be hoisted) writes out
+    """`_engine.passes.unroll._unrolled` (what lets derivative programs' loops be hoisted)
+    writes out
     sums, products, maxima, minima, all and any over at most `UNROLL_MAX_TERMS` terms, in
     nested loops and branches too, with the same numbers; a larger one stays."""
     rng = np.random.default_rng(0)
@@ -1267,7 +1301,7 @@ def test_small_reductions_written_out_term_by_term():
         return P, s, pr, c, cs, big, branch, jnp.all(m), jnp.any(m), jnp.min(v, axis=0)
 
     closed = jax.make_jaxpr(f)(A, B, v, m)
-    out = _engine._unrolled(closed)
+    out = _engine.passes.unroll._unrolled(closed)
     assert len(_reductions(closed.jaxpr)) == 11
     assert [e.params["axes"] for e in _reductions(out.jaxpr)] == [(0,)]  # the 40 terms
     got = jax.core.eval_jaxpr(out.jaxpr, out.consts, A, B, v, m)
@@ -1279,20 +1313,20 @@ def test_small_reductions_written_out_term_by_term():
     np.testing.assert_allclose(np.asarray(got[0]), np.asarray(A @ B), rtol=1e-15, atol=1e-15)
     # a reduction of a leaf used elsewhere is sliced from it, a literal's reduced as is
     g = lambda x: x * jnp.sum(x)
-    assert not _reductions(_engine._unrolled(jax.make_jaxpr(g)(v)).jaxpr)
+    assert not _reductions(_engine.passes.unroll._unrolled(jax.make_jaxpr(g)(v)).jaxpr)
 
 
 def test_hoisting_can_be_turned_off_from_the_environment():
     """``SO3JAX_HOIST_LOOPS=0``: the way out should XLA's older emitter refuse a loop;
     ``1`` asks for hoisting on a jaxlib the suite has not passed on. Unset, loops are
-    hoisted only on the jaxlib releases of `HOIST_VERIFIED` (a loop XLA's older emitter
+    hoisted only on the jaxlib releases of `_jax.TESTED` (a loop XLA's older emitter
     cannot compile aborts the process)."""
     import jaxlib
 
-    code = "import so3jax._engine as e; print(e.HOIST_LOOPS)"
+    code = "from so3jax._engine import policy; print(policy.DEFAULT.on('hoist'))"
     release = tuple(int(x) for x in jaxlib.__version__.split(".")[:2])
-    unset = str(release in _engine.HOIST_VERIFIED)
-    assert unset == str(_engine.hoisting_verified())
+    unset = str(release in _engine._jax.TESTED)
+    assert unset == str(_engine.policy.hoisting_verified())
     for value, want in (("0", "False"), ("1", "True"), (None, unset)):
         env = dict(os.environ, JAX_PLATFORMS="cpu")
         env.pop("SO3JAX_HOIST_LOOPS", None)

@@ -44,7 +44,7 @@ def test_single_run():
 def test_batches(B):
     R, _ = _starts(B)
     plan = so3jax.explain(jax.vmap(lambda R: so3jax.simulate(SC, M, 1e-2, N, R0=R)), R)
-    threshold = _engine.batched_layout("run")[0]
+    threshold = _engine.policy.batched_layout("run")[0]
     assert _layouts(plan, "run") == [(B, "scalarized" if B >= threshold else "array")]
 
 
@@ -75,7 +75,7 @@ def test_grad_through_twelve_gains_is_the_checkpointed_jvp():
 
     gains = jax.tree.map(lambda g: jnp.broadcast_to(g, (3,)), quad.gains)
     n = sum(g.size for g in jax.tree.leaves(gains))
-    assert n == 12 > _engine.FORWARD_JACOBIAN_MAX
+    assert n == 12 > _engine.policy.current().forward_jacobian_max
     plan = so3jax.explain(jax.grad(loss), gains)
     assert _strategies(plan) == ["checkpointed jvp"]
     # the 12 gains and what the scene derives from them (the held control at t = 0)
@@ -90,7 +90,7 @@ def test_hessian_differentiates_the_rules_programs():
 
 
 def test_nothing_is_recorded_outside_explain():
-    from so3jax import _plan
+    from so3jax._engine import plan as _plan
 
     assert _plan.count() == 0
     _plan.note("layout", program="run", runs=1, layout="array")  # a no-op here

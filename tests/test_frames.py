@@ -1,4 +1,4 @@
-"""Attitude tangents as three numbers (`so3jax._frames`): the same derivatives as JAX.
+"""Attitude tangents as three numbers (`so3jax._engine.passes.frames`): the same derivatives as JAX.
 
 Every check compares with JAX's own ``jvp`` of the same function given the dense tangent
 ``R hat(xi)``, or with JAX's autodiff of the plain array program.
@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import so3jax as s
-from so3jax import _control, _engine, _frames as F, _state, _tune, _updates
+from so3jax import _control, _engine, _state, _tune, _updates
+from so3jax._engine.passes import frames as F
 from so3jax._simulate import _simulate, engine_step, guarded_step, split_groups
 from so3jax._tune import with_gains, with_start
 
@@ -167,7 +168,9 @@ def test_one_step_of_every_method(method):
 def _batched_seed_cost(method, dtype, program, seed: int, traj_cost):
     """``k -> `` the mean of ``traj_cost`` over 6-step seed runs from 16 starts (the
     scalarized Jacobian program's smallest batch), gains ``k``, in ``dtype``."""
-    R0, W0 = s.initial_states(jax.random.PRNGKey(seed), _engine.batched_layout("jacobian")[0])
+    R0, W0 = s.initial_states(
+        jax.random.PRNGKey(seed), _engine.policy.batched_layout("jacobian")[0]
+    )
     sc0 = s.scenes.seed(dtype)
 
     def f(k):
@@ -202,7 +205,7 @@ def test_scalarized_jacobian_with_three_number_tangents(method, monkeypatch):
     k = jnp.array([3.0, 1.5])
     ref = jax.jit(jax.jacfwd(cost("autodiff")))(k)
     steps, errors = [], []
-    frame_step = _engine._frame_step
+    frame_step = _engine.passes.frames._frame_step
 
     def spy(*args):
         steps.append(1)
@@ -212,15 +215,15 @@ def test_scalarized_jacobian_with_three_number_tangents(method, monkeypatch):
             errors.append(1)
             raise
 
-    monkeypatch.setattr(_engine, "_frame_step", spy)
+    monkeypatch.setattr(_engine.programs, "_frame_step", spy)
     got = jax.jit(jax.jacfwd(cost("auto")))(k)
     assert steps, "the three-number program did not run"
     assert bool(errors) == isinstance(method, type(s.LGVI()))
     assert _rel(got, ref) < 1e-10
-    monkeypatch.setattr(_engine, "FRAME_TANGENTS", False)
     jax.clear_caches()  # JAX keeps the derivative of `_simulate`'s jitted program
     n_steps = len(steps)
-    assert _rel(got, jax.jit(jax.jacfwd(cost("auto")))(k)) < 1e-12
+    with _engine.policy.using(passes=_engine.policy.PASSES - {"frames"}):
+        assert _rel(got, jax.jit(jax.jacfwd(cost("auto")))(k)) < 1e-12
     assert len(steps) == n_steps  # nine numbers this time
 
 
@@ -273,8 +276,10 @@ def test_scalarized_jacobian_in_float32(monkeypatch):
     k = jnp.array([3.0, 1.5])
     ref = jax.jit(jax.jacfwd(cost(jnp.float64, "autodiff")))(k)
     steps = []
-    frame_step = _engine._frame_step
-    monkeypatch.setattr(_engine, "_frame_step", lambda *a: steps.append(1) or frame_step(*a))
+    frame_step = _engine.passes.frames._frame_step
+    monkeypatch.setattr(
+        _engine.programs, "_frame_step", lambda *a: steps.append(1) or frame_step(*a)
+    )
     got = jax.jit(jax.jacfwd(cost(jnp.float32, "auto")))(k.astype(jnp.float32))
     assert steps and got.dtype == jnp.float32
     assert _rel(got, ref) < 1e-4

@@ -1,4 +1,4 @@
-"""The version gate of JAX's internals (`so3jax._jax`): on a JAX release outside
+"""The version gate of JAX's internals (`so3jax._engine._jax`): on a JAX release outside
 `TESTED`, the engine runs its reference programs (the checkpointed ``lax.scan`` and
 JAX's own autodiff), with the same results, and warns once."""
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import so3jax
-from so3jax import _jax
+from so3jax._engine import _jax
 
 SC = so3jax.scenes.seed()
 M = so3jax.RKMK4()

@@ -1,4 +1,4 @@
-"""so3jax's own ``linear_call`` primitive (`so3jax._linear_call`): the contract of
+"""so3jax's own ``linear_call`` primitive (`so3jax._engine.linear_call`): the contract of
 `jax.custom_derivatives.linear_call` (a linear map whose transpose is the function given),
 plus batching. Checked on a map with a known transpose: ``f(r, x) = r * (A @ x)``."""
 
@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from so3jax._linear_call import AVAILABLE, linear_call
+from so3jax._engine.linear_call import AVAILABLE, linear_call
 
 pytestmark = pytest.mark.skipif(not AVAILABLE, reason="JAX lacks the rule tables")
 

@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 
 import so3jax
-from so3jax._scalarize import ScalarizeError, from_components, scalarize, to_components
+from so3jax._engine.passes.scalarize import (
+    ScalarizeError,
+    from_components,
+    scalarize,
+    to_components,
+)
 from so3jax._tune import with_gains
 
 # One method per engine (RKMK in both coordinates, commutator-free, LGVI); LieEuler
@@ -185,7 +190,8 @@ def test_fusion_cuts_keep_values_and_survive_compilation():
     the cut must keep it as a buffer (a ``conditional`` in the compiled program),
     not vanish into a ``select`` or a forwarded operand.
     """
-    from so3jax._scalarize import cut_index, flat_program
+    from so3jax._engine.passes.cuts import cut_index
+    from so3jax._engine.passes.scalarize import flat_program
 
     def fn(x):
         u = x[0] * x[1] + x[2] * x[0] - x[1] * x[2] + 1.5 * x[0] * x[0]
@@ -235,7 +241,7 @@ def test_settle_batched_reaches_the_scan_fixed_point_and_keeps_shared_values():
     two (JAX's scan would batch its body three times to find that); ``d`` never does
     and must stay unbatched (like a reference attitude shared by a batch).
     """
-    from so3jax import _scalarize as sc
+    from so3jax._engine.passes import scalarize as sc
 
     def step(x):
         a, b, c, d = x
@@ -277,7 +283,7 @@ def test_settle_batched_keeps_values_from_an_outer_jit_unbatched():
     """A value the step closes over from an outer ``jit`` is not batched by the ``vmap``
     inside it: a carry component that depends only on it stays shared (JAX 0.10 has no
     ``batching.not_mapped``, and every traced constant used to count as batched)."""
-    from so3jax import _scalarize as sc
+    from so3jax._engine.passes import scalarize as sc
 
     seen = []
 
@@ -312,13 +318,13 @@ def test_settle_batched_keeps_values_from_an_outer_jit_unbatched():
 def test_fusion_cut_branches_are_traced_once_per_operand_types():
     """Cuts at the same operand types share their branch jaxprs (`_cut_branches`); the
     values pass through for index 0 and 1, and the never-taken branch gives zeros."""
-    from so3jax import _scalarize as sc
+    from so3jax._engine.passes import cuts
 
-    sc._cut_branches.cache_clear()
+    cuts._cut_branches.cache_clear()
 
     def two_cuts(x, index):
-        a = sc.fusion_cut([x, 2.0 * x, x > 0.0], index)
-        b = sc.fusion_cut([a[0] + 1.0, a[1], a[2] & (x < 1.0)], index)
+        a = cuts.fusion_cut([x, 2.0 * x, x > 0.0], index)
+        b = cuts.fusion_cut([a[0] + 1.0, a[1], a[2] & (x < 1.0)], index)
         return b
 
     f = jax.jit(two_cuts)
@@ -326,7 +332,7 @@ def test_fusion_cut_branches_are_traced_once_per_operand_types():
     for i in (0, 1):
         out = f(x, jnp.asarray(i, jnp.int32))
         assert [float(v) for v in out] == [1.5, 1.0, 1.0]
-    info = sc._cut_branches.cache_info()
+    info = cuts._cut_branches.cache_info()
     assert (info.misses, info.hits) == (1, 1), info
     zeros = f(x, jnp.asarray(2, jnp.int32))
     assert [float(v) for v in zeros] == [0.0, 0.0, 0.0]
@@ -338,14 +344,14 @@ def test_array_cuts_keep_values_and_derivatives(count_cuts):
     under vmap); on the CPU an `array_cut` is a conditional in XLA's program, batched or
     not, a `derivative_cut` one only where differentiated; the scalarizer drops both;
     the probe's index stays unbatched, so a shared operand stays unbatched."""
-    from so3jax import _scalarize as sc
+    from so3jax._engine.passes import cuts, scalarize as sc
 
     def body(x, cut, deriv):
         u = jnp.sin(x) * x[::-1] + 0.5 * x * x
         if cut:
-            (u,) = sc.array_cut(sc.array_cut_index(x), u)
+            (u,) = cuts.array_cut(cuts.array_cut_index(x), u)
         if deriv:
-            (u,) = sc.derivative_cut(u)
+            (u,) = cuts.derivative_cut(u)
         return jnp.sum(u * u * x) + u[0] * u[1]
 
     x = jnp.array([0.3, -0.7, 1.1])
@@ -376,7 +382,7 @@ def test_array_cuts_keep_values_and_derivatives(count_cuts):
         assert "cond[" not in str(jax.make_jaxpr(jvp)(sc.split(x)))
 
     def pair(a, b):  # a cut over a batched and a shared operand
-        return sc.array_cut(sc.array_cut_index(a), a * 2.0, b * 3.0)
+        return cuts.array_cut(cuts.array_cut_index(a), a * 2.0, b * 3.0)
 
     jaxpr = jax.make_jaxpr(pair)(x, x).jaxpr
     assert sc.batched_outputs(jaxpr, [True, False]) == [True, False]
@@ -387,9 +393,14 @@ def test_array_cuts_keep_values_and_derivatives(count_cuts):
 
 def test_values_consumed_by_batched_columns_are_cut():
     """A value that a column-batched operation consumes is cut from a cone of
-    `COLUMN_CUT_CONE` operations (XLA would recompute it once per column): with the
+    the policy's ``column_cut_cone`` operations (XLA would recompute it once per column):
+    with the
     inputs' ``columns`` flags, not without; values unchanged, the columns vmapped."""
-    from so3jax._scalarize import COLUMN_CUT_CONE, cut_index, flat_program
+    from so3jax._engine.passes.cuts import cut_index
+    from so3jax._engine.passes.scalarize import flat_program
+    from so3jax._engine.policy import current
+
+    COLUMN_CUT_CONE = current().column_cut_cone
 
     def fn(x):  # x[:2] primal, x[2] a tangent column
         p = x[0] * x[1] + x[0] - x[1] * x[1] + 0.5 * x[0]  # a cone of 6 operations, one use

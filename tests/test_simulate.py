@@ -9,7 +9,8 @@ from exact_rigid_body import ExactFreeBody, ambient_reference
 from scipy.spatial.transform import Rotation
 
 import so3jax
-from so3jax import LieState, RigidBody, _engine, _scalarize as sc
+from so3jax import LieState, RigidBody, _engine
+from so3jax._engine.passes import scalarize as sc
 from so3jax.scenes import MechanicalScene
 
 MOMENTS = np.array([1.0, 1.5, 2.2])
@@ -471,7 +472,7 @@ def test_batched_runs_share_the_reference_attitude():
     sc = so3jax.scenes.seed()
     method, dt, n = so3jax.RKMK4(), 0.01, 8
     # batches large enough for the scalarized program (smaller ones run the array program)
-    B = _engine.batched_layout("run")[0]
+    B = _engine.policy.batched_layout("run")[0]
     R0, W0 = so3jax.initial_states(0, B)
     k = jnp.linspace(2.0, 8.0, B)
 
@@ -555,7 +556,7 @@ def test_start_arguments_share_the_reference_under_vmap():
     """Under vmap over `R0` the reference attitude stays unbatched; vmap equals single runs."""
     sc = so3jax.scenes.seed()
     method, dt, n = so3jax.RKMK4(), 0.01, 8
-    B = _engine.batched_layout("run")[0]
+    B = _engine.policy.batched_layout("run")[0]
     R0, W0 = so3jax.initial_states(0, B)
 
     def public(R, W):

@@ -62,7 +62,7 @@ def test_reproducible_and_sample_i_independent_of_n(scene, base):
     np.testing.assert_array_equal(np.asarray(R), base.R0)
 
 
-def test_chunked_equals_unchunked(scene, base, monkeypatch):
+def test_chunked_equals_unchunked(scene, base, monkeypatch, engine_policy):
     def default_chunks():
         kw = {**SETTINGS, "chunk_size": None}
         return s.sweep(scene, K_R, K_OMEGA, key=jax.random.key(3), n_attitudes=4, **kw)
@@ -73,7 +73,7 @@ def test_chunked_equals_unchunked(scene, base, monkeypatch):
     assert_same(base, default_chunks(), rtol=1e-12, atol=1e-15)
     # A default cap below the run count spreads the runs evenly: 24 runs under a cap of
     # 10 go as 3 chunks of 8 (the shape `base` compiled), not 10 + 10 + 4 padded to 10.
-    from so3jax import _engine, _sweep
+    from so3jax import _sweep
 
     sizes, run_chunk = [], _sweep._run_chunk
 
@@ -81,7 +81,7 @@ def test_chunked_equals_unchunked(scene, base, monkeypatch):
         sizes.append(args[7].shape[0])  # k_R of the chunk's runs
         return run_chunk(*args)
 
-    monkeypatch.setitem(_engine.SWEEP_CHUNK, "cpu", 10)
+    engine_policy(sweep_chunk={"cpu": 10, "gpu": 65536})
     monkeypatch.setattr(_sweep, "_run_chunk", recorded)
     spread = default_chunks()
     assert sizes[:3] == [8, 8, 8]  # then the re-runs of the failed runs

@@ -196,7 +196,7 @@ def test_forward_and_reverse_tuning_agree():
 
 
 def test_tune_compiles_its_iteration_with_the_engines_options(monkeypatch):
-    """`tune`'s iteration goes through `_engine.jit_own`: the engine's options for the
+    """`tune`'s iteration goes through `_engine.policy.jit_own`: the engine's options for the
     library's own programs reach XLA (one XLA does not know is rejected, and the program
     compiles with XLA's defaults), a level the caller names in ``XLA_FLAGS`` wins, and the
     tuning does not depend on the level."""
@@ -205,23 +205,21 @@ def test_tune_compiles_its_iteration_with_the_engines_options(monkeypatch):
     scene = s.scenes.seed()
     kw = dict(method=s.LieEuler(), dt=DT, n_steps=20, n_iter=3)
     monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
-    assert _engine.own_compiler_options() is None
+    assert _engine.policy.own_compiler_options() is None
     caller = s.tune(scene, (2.0, 1.0), **kw)
     monkeypatch.setenv("XLA_FLAGS", "")
-    monkeypatch.setitem(
-        _engine.OWN_COMPILER_OPTIONS, jax.default_backend(), {"xla_backend_optimization_level": 2}
-    )
-    assert _engine.own_compiler_options() == {"xla_backend_optimization_level": 2}
-    own = s.tune(scene, (2.0, 1.0), **kw)
+    level2 = {jax.default_backend(): {"xla_backend_optimization_level": 2}}
+    with _engine.policy.using(own_compiler_options=level2):
+        assert _engine.policy.own_compiler_options() == {"xla_backend_optimization_level": 2}
+        own = s.tune(scene, (2.0, 1.0), **kw)
     np.testing.assert_allclose(own.cost_history, caller.cost_history, rtol=1e-10)
     np.testing.assert_allclose(own.k_R_history, caller.k_R_history, rtol=1e-10)
     # An option XLA does not know reaches it and is rejected: the iteration then compiles
     # with XLA's defaults, with a warning, and tunes the same.
-    monkeypatch.setitem(
-        _engine.OWN_COMPILER_OPTIONS, jax.default_backend(), {"xla_no_such_option": 1}
-    )
-    with pytest.warns(UserWarning, match="xla_no_such_option"):
-        rejected = s.tune(scene, (2.0, 1.0), **kw)
+    unknown = {jax.default_backend(): {"xla_no_such_option": 1}}
+    with _engine.policy.using(own_compiler_options=unknown):
+        with pytest.warns(UserWarning, match="xla_no_such_option"):
+            rejected = s.tune(scene, (2.0, 1.0), **kw)
     np.testing.assert_allclose(rejected.cost_history, caller.cost_history, rtol=1e-10)
 
 

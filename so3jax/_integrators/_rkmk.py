@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._scalarize import array_cut, array_cut_index, derivative_cut
+from .._engine.passes.cuts import array_cut, array_cut_index, derivative_cut
 from .._so3 import _D_SERIES, _cross, _dcayinv, _dexpinv, _dot, _polyval
 from .._state import LieState, advance, increment, retract
 from ._base import AbstractLieSolver, ButcherTableau, lincomb

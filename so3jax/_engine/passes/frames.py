@@ -34,8 +34,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.extend import core as jex_core
 
-from . import _scalarize as sc
-from ._so3 import _cross
+from ..._so3 import _cross, _mm, _mT, _vee
+from ..policy import current
+from ..trees import _floats
+from . import cuts
 
 __all__ = ["Frame", "FrameError", "frame_jvp", "frame_rule", "dense", "right_or_zero"]
 
@@ -220,7 +222,7 @@ def _jvp_eqn(eqn, xs, ts):
         args = list(xs)
         for i, a in zip(idx, nz, strict=True):
             args[i] = a
-        return sc._bind(eqn, args)
+        return cuts._bind(eqn, args)
 
     outs, touts = jax.jvp(f, [xs[i] for i in idx], [ts[i] for i in idx])
     touts = [t if _is_float(v.aval) else None for t, v in zip(touts, eqn.outvars, strict=True)]
@@ -257,7 +259,7 @@ def _eval(jaxpr, consts, primals, tangents):
         floats_out = [_is_float(v.aval) for v in eqn.outvars]
         with eqn.ctx.manager:
             if all(t is None for t in ts) or not any(floats_out):
-                outs, touts = sc._bind(eqn, xs), [None] * len(eqn.outvars)
+                outs, touts = cuts._bind(eqn, xs), [None] * len(eqn.outvars)
                 if name == "broadcast_in_dim" and _uniform_broadcast(eqn):
                     uniform.add(eqn.outvars[0])
             else:
@@ -291,7 +293,7 @@ def _frame_eqn(eqn, xs, ts, uniform):
         t = _moved(eqn, xs, ts, uniform)
         if t is None:
             return None, None
-        return sc._bind(eqn, xs), [t]
+        return cuts._bind(eqn, xs), [t]
     if name in ("pjit", "jit", "closed_call", "core_call"):
         inner = eqn.params.get("jaxpr") or eqn.params.get("call_jaxpr")
         if isinstance(inner, jex_core.ClosedJaxpr):
@@ -307,13 +309,13 @@ def _frame_eqn(eqn, xs, ts, uniform):
         if res is None:
             return None, None
         return list(res[0]), list(res[1])
-    if name == "cond" and sc._is_cut(eqn.params["branches"]):
+    if name == "cond" and cuts._is_cut(eqn.params["branches"]):
         # A fusion cut (`so3jax._scalarize.fusion_cut`) of values with `Frame` tangents and
         # none dense: the values through it, the frames beside it (the operands after the
         # index are its outputs, one to one).
         if any(t is not None and not isinstance(t, Frame) for t in ts):
             return None, None
-        return sc._bind(eqn, xs), list(ts[1:])
+        return cuts._bind(eqn, xs), list(ts[1:])
     return None, None
 
 
@@ -326,3 +328,145 @@ def frame_jvp(fn: Callable, primals: list, tangents: list) -> tuple[list, list]:
     closed = jax.make_jaxpr(fn)(*primals)
     res = _eval(closed.jaxpr, closed.consts, list(primals), list(tangents))
     return [o for o, _ in res], [t for _, t in res]
+
+
+# --------------------------------------------------------------------------
+# the Jacobian programs' carry and observations with `Frame` tangents
+# --------------------------------------------------------------------------
+
+
+#: A carry mask's flag for a leaf whose tangent the Jacobian programs carry as a
+#: `Frame`: ``xi`` of shape ``shape[:-2] + (3,)`` for ``dR = R hat(xi)``.
+FRAME = 2
+
+
+def _frame_flags(mc) -> list:
+    """Per masked carry leaf, whether its tangent is a `Frame`."""
+    return [m == FRAME for m in mc if m]
+
+
+def _dense_mask(mc) -> tuple:
+    """``mc`` with its `FRAME` flags read as plain ones (nine numbers per rotation)."""
+    return tuple(bool(m) for m in mc)
+
+
+def _to_frames(cm, dc, fr) -> list:
+    """Dense rotation tangents (``n`` columns in front) as `Frame` ``xi``: ``vee(R^T dR)``
+    (exact for the zero tangents the Jacobian programs start from)."""
+    return [_vee(_mm(_mT(R), d)) if f else d for R, d, f in zip(cm, dc, fr, strict=True)]
+
+
+def _from_frames(cm, dc, fr) -> list:
+    """`Frame` ``xi`` (``n`` columns in front) as dense tangents ``R hat(xi)``."""
+    return [dense(R, Frame(d)) if f else d for R, d, f in zip(cm, dc, fr, strict=True)]
+
+
+def _jvp_with_frames(fn, Pm, cm, dP, dc, fr):
+    """`frame_jvp` of ``fn(Pm, cm)`` (a pytree out) with the carry tangents flagged in
+    ``fr`` given as `Frame` ``xi``: ``(out leaves, their tangents, out treedef)``."""
+    tree = []
+
+    def flat(*args):
+        leaves, treedef = jax.tree.flatten(fn(list(args[: len(Pm)]), list(args[len(Pm) :])))
+        tree.append(treedef)
+        return leaves
+
+    tin = list(dP) + [Frame(d) if f else d for d, f in zip(dc, fr, strict=True)]
+    outs, touts = frame_jvp(flat, list(Pm) + list(cm), tin)
+    return outs, touts, tree[-1]
+
+
+def _frame_step(g, Pm, cm, dP, dc, fr):
+    """``(dc1, c1)``: `_Loop._tstep`'s ``jvp`` of ``g`` (``-> (masked carry floats, c1)``)
+    with `Frame` carry tangents.
+
+    Raises `FrameError` naming the leaves whose tangent came out dense."""
+    outs, touts, treedef = _jvp_with_frames(g, Pm, cm, dP, dc, fr)
+    n = len(fr)  # the masked carry floats come first
+    dc1, bad = [], []
+    for i, (f, o, t) in enumerate(zip(fr, outs[:n], touts[:n], strict=True)):
+        if f and isinstance(t, Frame) and not t.left:
+            dc1.append(t.xi.astype(jnp.result_type(o)))
+        elif f and t is None:
+            dc1.append(jnp.zeros(jnp.shape(o)[:-2] + (3,), jnp.result_type(o)))
+        elif f:
+            bad.append(i)
+        else:
+            dc1.append(jnp.zeros_like(o) if t is None else dense(o, t))
+    if bad:
+        raise FrameError(bad)
+    return dc1, jax.tree.unflatten(treedef, outs)[1]
+
+
+def _frame_observe(o, Pm, cm, dP, dc, fr):
+    """`_Loop._tobs`'s tangent of ``o`` with `Frame` carry tangents (dense outputs)."""
+    outs, touts, treedef = _jvp_with_frames(o, Pm, cm, dP, dc, fr)
+    tan = [
+        jnp.zeros_like(x) if t is None else dense(x, t) for x, t in zip(outs, touts, strict=True)
+    ]
+    return jax.tree.unflatten(treedef, tan)
+
+
+#: An observation's kind in the Jacobian programs (`_Loop.obs_kinds`): no tangent (not
+#: computed; zeros outside), a dense one, or a `Frame` ``xi`` (right, left), three numbers
+#: per rotation that `_jacobian_jvp` turns dense after the loop.
+OBS_ZERO, OBS_DENSE, OBS_RIGHT, OBS_LEFT = 0, 1, 2, 3
+
+
+def _obs_kind(x, t) -> int:
+    """The kind of an observation ``x`` whose tangent `frame_jvp` gave as ``t``."""
+    if t is None:
+        return OBS_ZERO
+    if current().on("frames") and isinstance(t, Frame):
+        return OBS_LEFT if t.left else OBS_RIGHT
+    return OBS_DENSE
+
+
+def _obs_tangent(x, t, kind: int):
+    """The tangent ``t`` of the observation ``x`` (``None``, an array or a `Frame`) as its
+    ``kind`` stores it: dense, or ``xi`` (``vee(R^T dR)`` or ``vee(dR R^T)`` from a dense one,
+    which for a rotation ``R`` is ``dR`` exactly in exact arithmetic)."""
+    if kind == OBS_DENSE:
+        return jnp.zeros_like(x) if t is None else dense(x, t)
+    left = kind == OBS_LEFT
+    if t is None:
+        return jnp.zeros(jnp.shape(x)[:-2] + (3,), jnp.result_type(x))
+    if isinstance(t, Frame) and t.left == left:
+        return t.xi.astype(jnp.result_type(x))
+    d = dense(x, t)
+    return _vee(_mm(d, _mT(x)) if left else _mm(_mT(x), d))
+
+
+def _with_frames(mc, c0, nz_c) -> tuple:
+    """``mc`` with `FRAME` for each masked carry leaf that may carry a `Frame`: rotation-
+    shaped, without an input tangent (it starts at zero, ``R hat(0)`` for any ``R``).
+
+    Whether a step keeps it a frame is found when the scalarized Jacobian program is
+    traced (`_Loop.jac_scalar`, which falls back to nine numbers for a leaf whose tangent
+    comes out dense, such as LGVI's); the array layout always carries nine.
+    """
+    return tuple(
+        FRAME
+        if current().on("frames") and m and not z and tuple(jnp.shape(x)[-2:]) == (3, 3)
+        else m
+        for m, x, z in zip(mc, _floats(c0), nz_c, strict=True)
+    )
+
+
+def _frame_dense(R, xi, left: bool):
+    """``R hat(xi)`` (``left``: ``hat(xi) R``) for ``xi`` of shape ``R.shape[:-1]``, written
+    with splits and concatenations only, so that JAX's transpose (``grad`` of a cost on the
+    saved rotations) is elementwise too.
+
+    `so3jax._frames.dense` broadcasts ``xi`` over ``R``'s rows and slices both; JAX
+    transposes the broadcast into a sum over an axis of three (which XLA's CPU compiler
+    hands to a library reduction) and each slice into a pad. Here ``xi`` is concatenated
+    three times (transposed: three slices added) and components are split (transposed:
+    concatenated).
+    """
+    if left:  # hat(xi) R = -(R^T hat(xi))^T
+        return -jnp.swapaxes(_frame_dense(jnp.swapaxes(R, -1, -2), xi, False), -1, -2)
+    X = jnp.concatenate([xi[..., None, :].astype(R.dtype)] * 3, axis=-2)
+    r0, r1, r2 = jnp.split(R, 3, axis=-1)
+    x0, x1, x2 = jnp.split(X, 3, axis=-1)  # rows of R hat(xi) are r_i x xi
+    return jnp.concatenate([r1 * x2 - r2 * x1, r2 * x0 - r0 * x2, r0 * x1 - r1 * x0], axis=-1)

@@ -22,6 +22,8 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 
+from . import policy
+
 _RECORDER: contextvars.ContextVar[list | None] = contextvars.ContextVar("so3jax_plan", default=None)
 
 
@@ -68,15 +70,22 @@ def note(kind: str, **details) -> None:
 
 
 def jit(fn: Callable) -> Callable:
-    """`equinox.filter_jit` of ``fn``, except under `explain`, which traces ``fn`` inline:
-    a jitted function whose trace is cached would not take its decisions again."""
-    jitted = eqx.filter_jit(fn)
+    """`equinox.filter_jit` of ``fn`` keyed by the engine's active policy
+    (`so3jax._engine.policy.current`): a call under another policy traces again, and
+    traces under that policy. Under `explain` ``fn`` is traced inline: a jitted function
+    whose trace is cached would not take its decisions again."""
+
+    def under(active, *args, **kwargs):
+        with policy.using(active):
+            return fn(*args, **kwargs)
+
+    jitted = eqx.filter_jit(under)
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
         if _RECORDER.get() is not None:
             return fn(*args, **kwargs)
-        return jitted(*args, **kwargs)
+        return jitted(policy.current(), *args, **kwargs)
 
     return call
 
@@ -99,12 +108,18 @@ class Plan:
           ``"one-pass Jacobian"``, ``"checkpointed jvp"`` (JAX's autodiff of the
           checkpointed array program), ``"discrete adjoint"`` or ``"second
           derivative"``; ``scalars``: the differentiated scalars; ``why``);
+          the strategies are `so3jax._engine.derivatives`' objects;
         - ``"tiles"``: a batch run in ``n`` tiles of ``size`` runs, one after the other;
+        - ``"frames"``: a scalarized Jacobian program carrying ``rotations`` attitude
+          tangents as three numbers (0: every rotation's tangent as nine);
         - ``"hoisting"``: whether a loop compiles as one kernel on a CPU (``hoisted``,
           ``why`` when not).
+    - `passes`: the optimisation passes the engine's policy runs (sorted names).
     """
 
     entries: list
+    #: The optimisation passes the active policy runs (`so3jax._engine.policy.PASSES`).
+    passes: tuple = ()
 
     def of(self, kind: str) -> list:
         """The entries of one kind."""
@@ -113,7 +128,7 @@ class Plan:
     def __str__(self) -> str:
         if not self.entries:
             return "no fixed-step loop ran through the engine"
-        lines = []
+        lines = [f"passes: {', '.join(self.passes) or 'none (the reference path)'}"]
         for e in self.entries:
             details = ", ".join(f"{k}={v!r}" for k, v in e.items() if k != "kind")
             lines.append(f"{e['kind']}: {details}")
@@ -148,4 +163,4 @@ def explain(fn: Callable, *args, **kwargs) -> Plan:
         jax.make_jaxpr(lambda *a: fn(*a, **kwargs))(*args)
     finally:
         _RECORDER.reset(token)
-    return Plan(entries)
+    return Plan(entries, tuple(sorted(policy.current().passes)))

@@ -1,0 +1,300 @@
+"""What each optimisation pass of the execution engine buys: every pass off in turn.
+
+Configurations (`so3jax._engine.policy`): "all passes" (the default), each of
+`so3jax._engine.policy.PASSES` off alone ("no hoist", ...), "none" (every pass off: the
+reference programs, with the engine's derivative strategies) and, where the API takes a
+program, "autodiff" (every pass off and ``program="autodiff"``: the checkpointed
+``lax.scan`` differentiated by JAX alone). Workloads, float64, RKMK4:
+
+- ``run``: one seed run, ``simulate(scenes.seed(), RKMK4(), 0.01, 1000)``, every state
+  saved;
+- ``batch``: ``vmap`` of `so3jax.simulate` over 4096 random initial attitudes (``R0=``),
+  100 steps, the final state saved;
+- ``grad``: `jax.grad` of `so3jax.expected_cost` over 256 starts with respect to
+  ``(k_R, k_Omega)``, 200 steps;
+- ``run grad``: `jax.grad` of one run's cost, the sum of ``|Omega|^2`` over the 1000 saved
+  states of ``run``, with respect to ``(k_R, k_Omega)``, no `vmap`: the derivative program
+  is the array layout, whose loop the engine hoists only with its small reductions
+  written out (the ``unroll`` pass);
+- ``quadrotor``: the forward pass of DiffTune's quadrotor loss (``difftune.py``: the sum
+  of ``|e_x|^2`` over the samples of Lee's controller on the 10 s circle), 800 steps of
+  2.5 ms;
+- ``quadrotor grad``: its `jax.value_and_grad` with respect to the 12 gains.
+
+`so3jax.simulate` takes no program: "autodiff" is measured on ``grad`` only. Past the
+policy's ``forward_jacobian_max`` differentiated scalars (the quadrotor's 12 gains) the
+engine differentiates with JAX's autodiff anyway.
+
+Each configuration compiles each workload once (timed apart, JAX's caches cleared between
+configurations, `_common.engine_settings`); after a warm-up call the configurations of a
+workload are timed in alternated rounds, one call each per round, the first configuration
+of a round rotating: at least ``--repeats`` rounds (default 3), more (up to 50) until each
+configuration has run for 0.5 s (a call of a few milliseconds on a shared machine needs
+more than three for its minimum). Each row keeps the fastest call, the range over rounds,
+the compile time, a hash of the compiled program (a pass that leaves a workload's program
+unchanged is seen as such, whatever the timing noise) and the largest difference of the
+outputs from those of "all passes", relative to their largest magnitude.
+
+Writes ``results/ablation[-quick].json`` and ``.png``: per workload, the time of each
+configuration over that of "all passes" (log scale; pale where the program is the same).
+
+    python benchmarks/ablation.py            # the sizes above: several minutes
+    python benchmarks/ablation.py --quick    # smoke run: a 20-step run, "all passes" and "none"
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+
+import _common as C
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import so3jax as so3
+from so3jax._engine import policy
+from so3jax._tune import with_gains
+
+DT_QUAD = 0.0025
+
+#: Configuration -> (passes, program). "autodiff" runs only where a workload takes a program.
+CONFIGS = {
+    "all passes": (policy.PASSES, "auto"),
+    **{f"no {p}": (policy.PASSES - {p}, "auto") for p in sorted(policy.PASSES)},
+    "none": (frozenset(), "auto"),
+    "autodiff": (frozenset(), "autodiff"),
+}
+BASE = "all passes"
+
+
+def sizes(quick: bool) -> dict:
+    if quick:
+        return {"run": 20, "batch": (32, 10), "grad": (16, 10), "quadrotor": 20}
+    return {"run": 1000, "batch": (4096, 100), "grad": (256, 200), "quadrotor": 800}
+
+
+def workloads(quick: bool) -> dict:
+    """Name -> (label, ``make(program) -> (fn, arg)``, whether it takes a program)."""
+    n = sizes(quick)
+    seed, method = so3.scenes.seed(), so3.RKMK4()
+
+    def run(program):
+        def fn(sc):
+            tr = so3.simulate(sc, method, 0.01, n["run"])
+            return tr.R, tr.Omega
+
+        return fn, seed
+
+    B, steps = n["batch"]
+    R0s = so3.random_rotation(jax.random.key(0), (B,))
+
+    def batch(program):
+        def one(R):
+            tr = so3.simulate(seed, method, 0.01, steps, steps, R0=R)
+            return tr.R[-1], tr.Omega[-1]
+
+        return jax.vmap(one), R0s
+
+    Bg, steps_g = n["grad"]
+    R0, W0 = so3.initial_states(jax.random.key(1), Bg)
+
+    def grad(program):
+        def cost(k):
+            return so3.expected_cost(
+                seed, k[0], k[1], R0, W0, method, 1e-2, steps_g, program=program
+            )
+
+        return jax.grad(cost), jnp.array([8.81, 2.54])
+
+    def run_grad(program):
+        def cost(k):
+            tr = so3.simulate(with_gains(seed, k[0], k[1]), method, 0.01, n["run"])
+            return jnp.sum(tr.Omega**2)
+
+        return jax.grad(cost), jnp.array([8.81, 2.54])
+
+    quad = so3.scenes.quadrotor_circle(control_period=DT_QUAD)
+    steps_q = n["quadrotor"]
+
+    def loss(g):
+        sc = eqx.tree_at(lambda s: s.gains, quad, g)
+        return jnp.sum(so3.simulate(sc, method, DT_QUAD, steps_q).extras["e_x"] ** 2)
+
+    return {
+        "run": (f"one run, {n['run']} steps", run, False),
+        "batch": (f"`vmap` of {B} runs, {steps} steps", batch, False),
+        "grad": (f"`grad` over {Bg} runs, {steps_g} steps", grad, True),
+        "run grad": (f"`grad`, one run, {n['run']} steps", run_grad, False),
+        "quadrotor": (f"quadrotor loss, {steps_q} steps", lambda p: (loss, quad.gains), False),
+        "quadrotor grad": (
+            "its value and gradient (12 gains)",
+            lambda p: (jax.value_and_grad(loss), quad.gains),
+            False,
+        ),
+    }
+
+
+def rel_diff(out, ref) -> float:
+    """Largest ``|out - ref|`` over the largest ``|ref|``, over every leaf."""
+    a = [np.asarray(v, float) for v in jax.tree.leaves(out)]
+    b = [np.asarray(v, float) for v in jax.tree.leaves(ref)]
+    scale = max(float(np.max(np.abs(v))) for v in b) or 1.0
+    return max(float(np.max(np.abs(u - v))) for u, v in zip(a, b, strict=True)) / scale
+
+
+def measure(make, takes_program: bool, configs: list[str], repeats: int, min_s: float):
+    """One workload in every configuration: compiled apart, timed in alternated rounds
+    (at least ``repeats``, and up to 50 until every configuration has run ``min_s``)."""
+    compiled = {}
+    for name in configs:
+        passes, program = CONFIGS[name]
+        if program != "auto" and not takes_program:
+            continue
+        with C.engine_settings(passes=passes):
+            fn, arg = make(program)
+            exe, compile_s, _ = C.compile_fn(fn, arg)
+        out = jax.block_until_ready(exe(arg))  # the warm-up call
+        digest = hashlib.sha1(exe.as_text().encode()).hexdigest()[:12]
+        compiled[name] = (exe, arg, compile_s, digest, out)
+    names = list(compiled)
+    times = {name: [] for name in names}
+    r = 0
+    while r < repeats or (min(sum(t) for t in times.values()) < min_s and r < 50):
+        for name in names[r % len(names) :] + names[: r % len(names)]:
+            exe, arg = compiled[name][:2]
+            t = time.perf_counter()
+            jax.block_until_ready(exe(arg))
+            times[name].append(time.perf_counter() - t)
+        r += 1
+    base = compiled.get(BASE)
+    rows = []
+    for name in names:
+        _, _, compile_s, digest, out = compiled[name]
+        ts = times[name]
+        rows.append(
+            {
+                "config": name,
+                "passes_off": sorted(policy.PASSES - CONFIGS[name][0]),
+                "program": CONFIGS[name][1],
+                "run_s": min(ts),
+                "run_s_range": [min(ts), max(ts)],
+                "rounds": ts,
+                "compile_s": compile_s,
+                "program_hash": digest,
+                "same_program_as_base": None if base is None else digest == base[3],
+                "max_rel_diff": None if base is None else rel_diff(out, base[4]),
+            }
+        )
+    return rows
+
+
+def figure(data: dict):
+    """Per workload, each configuration's time over that of "all passes" (log scale)."""
+    wl = list(data["workloads"])
+    configs = [c for c in data["configs"] if c != BASE]
+    by = {(r["workload"], r["config"]): r for r in data["rows"]}
+    ncols = min(3, len(wl))
+    nrows = math.ceil(len(wl) / ncols)
+    fig, axes = C.plt.subplots(
+        nrows, ncols, figsize=(3.4 * ncols, 3.6 * nrows), sharey=True, squeeze=False
+    )
+    for ax in axes.flat[len(wl) :]:
+        ax.set_visible(False)
+    for ax, w in zip(axes.flat, wl, strict=False):
+        base = by.get((w, BASE))
+        vals = [
+            by[(w, c)]["run_s"] / base["run_s"] if base and (w, c) in by else math.nan
+            for c in configs
+        ]
+        colors = ["0.6" if c in ("none", "autodiff") else "C0" for c in configs]
+        bars = ax.bar(range(len(configs)), vals, color=colors)
+        for bar, c in zip(bars, configs, strict=True):  # the same program: the bar is noise
+            if (w, c) in by and by[(w, c)]["same_program_as_base"]:
+                bar.set_alpha(0.3)
+        ax.axhline(1.0, color="k", lw=0.8)
+        ax.axhline(1.1, color="k", ls=":", lw=0.8)
+        ax.set_xticks(range(len(configs)), configs, rotation=60, ha="right", fontsize=8)
+        ax.set_yscale("log")
+        ax.set_title(data["workloads"][w]["label"].replace("`", ""), fontsize=9)
+        ax.grid(alpha=0.3, axis="y")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("time / time with all passes\n(dotted: 1.1)")
+    axes[0, 0].text(0.02, 0.97, "pale: same program", transform=axes[0, 0].transAxes, va="top")
+    e = data["env"]
+    machine = f"CPU, {e['cpu_count']} cores" if e["backend"] == "cpu" else e["device_kind"]
+    fig.suptitle(f"what each engine pass buys: slowdown with it off ({machine}, float64)")
+    fig.tight_layout()
+    return fig
+
+
+def main():
+    def extra(p):
+        p.set_defaults(repeats=3)
+        p.add_argument("--configs", nargs="+", choices=list(CONFIGS), help="default: all")
+        p.add_argument("--workloads", nargs="+", help="default: all (--quick: run)")
+
+    args = C.parse_args(__doc__.splitlines()[0], extra)
+    wl = workloads(args.quick)
+    names = args.workloads or (["run"] if args.quick else list(wl))
+    unknown = set(names) - set(wl)
+    if unknown:
+        raise ValueError(f"--workloads: unknown {sorted(unknown)}; known: {list(wl)}")
+    configs = args.configs or ([BASE, "none"] if args.quick else list(CONFIGS))
+    if BASE not in configs:
+        configs = [BASE, *configs]  # the baseline of every ratio
+    rows = []
+    for w in C.progress(names, "ablation"):
+        label, make, takes_program = wl[w]
+        min_s = 0.0 if args.quick else 0.5
+        for r in measure(make, takes_program, configs, args.repeats, min_s):
+            rows.append({"workload": w, **r})
+        C.write_partial(args, "ablation", rows)
+    n = sizes(args.quick)
+    data = {
+        "benchmark": "ablation",
+        "quick": args.quick,
+        "env": C.environment(),
+        "dtype": "float64",
+        "method": "RKMK4",
+        "repeats": args.repeats,
+        "passes": sorted(policy.PASSES),
+        "configs": {
+            c: {"passes_off": sorted(policy.PASSES - CONFIGS[c][0]), "program": CONFIGS[c][1]}
+            for c in configs
+        },
+        "workloads": {
+            w: {"label": wl[w][0], "takes_program": wl[w][2], "size": n[w.split()[0]]}
+            for w in names
+        },
+        "rows": rows,
+    }
+    base = {r["workload"]: r for r in rows if r["config"] == BASE}
+    for r in rows:
+        r["ratio"] = r["run_s"] / base[r["workload"]]["run_s"]
+        r["compile_ratio"] = r["compile_s"] / base[r["workload"]]["compile_s"]
+    C.print_table(
+        [
+            {
+                "workload": r["workload"],
+                "config": r["config"],
+                "ms": r["run_s"] * 1e3,
+                "x all passes": r["ratio"],
+                "compile s": r["compile_s"],
+                "same program": r["same_program_as_base"],
+                "rel diff": r["max_rel_diff"],
+            }
+            for r in rows
+        ],
+        ["workload", "config", "ms", "x all passes", "compile s", "same program", "rel diff"],
+        title="time with each pass off, over the time with all passes",
+    )
+    json_path, png_path = C.output_paths(args, "ablation")
+    C.write_json(json_path, data)
+    C.save_figure(figure(data), png_path)
+
+
+if __name__ == "__main__":
+    main()

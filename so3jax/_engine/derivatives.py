@@ -1,0 +1,443 @@
+"""Derivative strategies: how a run's derivative is computed, as objects.
+
+A run (`so3jax._engine.run`) is one ``jax.custom_jvp`` whose rule asks `choose` for a
+`Strategy` and hands it the loop, the forward program and the primals and tangents.
+There are three, all exact to round-off against each other:
+
+- `Autodiff`: JAX's own ``jvp`` of the checkpointed array program
+  (`so3jax._engine.loop.Loop.fwd_checkpointed`), which JAX transposes for reverse mode
+  with memory ``~ sqrt(n_steps)``. The reference, and the strategy through more than
+  the policy's ``forward_jacobian_max`` scalars.
+- `OnePassJacobian`: through at most ``forward_jacobian_max`` scalars, the run's value
+  and its Jacobian in one pass (the primal once, the unit tangents as columns over it);
+  the tangent is the Jacobian times the input tangent, and ``grad`` is JAX's transpose
+  of that contraction, with nothing stored per step.
+- `DiscreteAdjoint` (``program="adjoint"``): the engine's tangent program in forward
+  mode and a backward scan of ``jax.vjp`` of one step in reverse mode, whatever the
+  number of inputs, behind so3jax's own ``linear_call``. First derivatives only.
+
+Programs outside the fixed-step engine (`so3jax.simulate` with tolerances, whose loop
+is a ``while_loop``) use the same pieces: `Flagged` splits a rule's inputs into the
+differentiated leaves and the rest, `ForwardColumns` is the one-pass Jacobian of any
+forward-mode program, `CustomTranspose` joins a tangent program and a transpose.
+
+References: A. Griewank, A. Walther, *Evaluating Derivatives*, SIAM 2008 (vector
+forward mode and discrete adjoints, ch. 3; checkpointing, ch. 12).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.custom_derivatives import SymbolicZero
+
+from . import plan as _plan
+from .layout import _dual
+from .linear_call import linear_call
+from .masks import _tangent_masks
+from .passes.frames import OBS_DENSE, OBS_LEFT, OBS_ZERO, _frame_dense, _with_frames
+from .policy import current
+from .programs import Programs
+from .tangents import (
+    _HAVE_LINEAR_CALL_BATCHING,
+    _jvp_through,
+    first_order_only,
+    forward_differentiated,
+)
+from .trees import (
+    _batched_with,
+    _fill,
+    _floats,
+    _floats_with_zeros,
+    _is_float,
+    _masked_tangents,
+    _pick,
+    _tangent_leaves,
+    _tangent_tree,
+    _unit_columns,
+    _zero_like_tangent,
+)
+
+__all__ = [
+    "Strategy",
+    "Autodiff",
+    "OnePassJacobian",
+    "DiscreteAdjoint",
+    "choose",
+    "differentiated",
+    "Flagged",
+    "ForwardColumns",
+    "CustomTranspose",
+    "tangent_tree",
+    "float_leaves",
+    "jvp_through",
+]
+
+
+class Strategy:
+    """How a run's derivative is computed.
+
+    `jvp` is a ``jax.custom_jvp`` rule (``symbolic_zeros=True``): it takes the loop
+    (`so3jax._engine.programs.Programs`), the run's forward program ``fwd(P, c0) ->
+    (observations, final carry)``, and the rule's primals ``(P, c0)`` and tangents, and
+    returns the run's value and its tangent.
+    """
+
+    name: str = ""
+
+    def jvp(self, loop: Programs, fwd: Callable, primals, tangents):
+        raise NotImplementedError
+
+
+@dataclasses.dataclass(frozen=True)
+class Autodiff(Strategy):
+    """JAX's own ``jvp`` of the checkpointed array program, through the nonzero tangents.
+
+    Only the inputs with nonzero tangents are differentiated: dense zero tangents for
+    every other array would add a tangent term to each operation that touches them.
+    Under ``grad`` JAX transposes it with symbolic zeros for the outputs a cost does not
+    use, so their backward pass is pruned. ``why``: for `so3jax.explain`.
+    """
+
+    why: str = "JAX's derivative of the reference program"
+    name = "checkpointed jvp"
+
+    def jvp(self, loop, fwd, primals, tangents):
+        p_leaves, treedef = jax.tree.flatten(primals)
+        t_leaves, nz = _tangent_leaves(tangents)
+        n = sum(math.prod(jnp.shape(t)) for t, z in zip(t_leaves, nz, strict=True) if z)
+        _plan.note("derivative", strategy=self.name, scalars=n, why=self.why)
+        t_leaves, nz = _settle_carry_tangents(loop.step, primals, p_leaves, t_leaves, nz)
+        out, tan = _jvp_through(loop.fwd_checkpointed, treedef, p_leaves, t_leaves, nz)
+        return _batched_with(out, primals), tan  # batched as the run's forward programs are
+
+
+@dataclasses.dataclass(frozen=True)
+class OnePassJacobian(Strategy):
+    """The run's value and its Jacobian in one pass (`_jacobian_jvp`); through at most the
+    policy's ``forward_jacobian_max`` differentiated scalars."""
+
+    name = "one-pass Jacobian"
+
+    def jvp(self, loop, fwd, primals, tangents):
+        P, c0 = primals
+        nz, lin = _nonzero(primals, tangents)
+        n_pf = len(_floats(P))
+        _plan.note(
+            "derivative",
+            strategy=self.name,
+            scalars=_size(lin),
+            why=f"at most forward_jacobian_max = {current().forward_jacobian_max} scalars",
+        )
+        mP, mc, elements = _tangent_masks(loop.step, P, c0, nz[:n_pf], nz[n_pf:], elements=True)
+        return _jacobian_jvp(loop, P, c0, nz, lin, mP, mc, elements)
+
+
+_ADJOINT_FIRST_ORDER = (
+    'program="adjoint" has first derivatives only; for second derivatives '
+    '(jax.hessian, jvp or jacfwd of grad) use program="auto" (the default)'
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class DiscreteAdjoint(Strategy):
+    """The tangent program (`Programs.tan_array` / ``tan_scalar``) in forward mode and the
+    discrete adjoint (`Programs.adj_array` / ``adj_scalar``) as its transpose, whatever
+    the number of inputs. First derivatives only (a second raises
+    ``NotImplementedError``)."""
+
+    name = "discrete adjoint"
+
+    def jvp(self, loop, fwd, primals, tangents):
+        P, c0 = primals
+        nz, lin = _nonzero(primals, tangents)
+        pf, cf = _floats(P), _floats(c0)
+        mP, mc = _tangent_masks(loop.step, P, c0, nz[: len(pf)], nz[len(pf) :])
+        _plan.note("derivative", strategy=self.name, scalars=_size(lin), why='program="adjoint"')
+        out = fwd(P, c0)
+        tan = _dual(
+            functools.partial(loop.tan_array, mP, mc),
+            functools.partial(loop.tan_scalar, mP, mc),
+            "tangent",
+        )
+        adj = _dual(loop.adj_array, loop.adj_scalar, "adjoint")
+
+        def tangent(res, lin):
+            P, c0 = res
+            dys, dcN = tan(P, c0, *_masked_tangents(nz, lin, mP, mc, pf, cf))
+            return dys, _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(out[1])])
+
+        def transpose(res, cts):
+            P, c0 = res
+            ct_ys, ct_cN = cts
+            gP, gc = adj(P, c0, ct_ys, ct_cN)
+            return [g for g, z in zip(list(gP) + list(gc), nz, strict=True) if z]
+
+        res = first_order_only(_ADJOINT_FIRST_ORDER, (P, c0))
+        dys, dcNf = linear_call(tangent, transpose, res, lin)
+        return out, (dys, _tangent_tree(out[1], dcNf))
+
+
+def _nonzero(primals, tangents) -> tuple[list, list]:
+    """Per float leaf of ``primals``, whether its tangent is nonzero; the nonzero ones."""
+    tl = _floats_with_zeros(tangents, primals)
+    nz = [not isinstance(t, SymbolicZero) for t in tl]
+    return nz, [t for t, z in zip(tl, nz, strict=True) if z]
+
+
+def _size(xs) -> int:
+    return sum(math.prod(jnp.shape(x)) for x in xs)
+
+
+def choose(program: str, n_scalars: int) -> Strategy:
+    """The strategy for a run of ``program`` differentiated through ``n_scalars`` scalars.
+
+    ``"auto"``: `OnePassJacobian` through at most the policy's ``forward_jacobian_max``
+    scalars, else `Autodiff`; ``"adjoint"``: `DiscreteAdjoint`; ``"array"``, ``"scalar"``
+    (benchmarks) and a JAX release without so3jax's ``linear_call``: `Autodiff`.
+    """
+    if program not in ("auto", "adjoint") or not _HAVE_LINEAR_CALL_BATCHING:
+        return Autodiff(why="a program that asks for JAX's derivative")
+    if program == "adjoint":
+        return DiscreteAdjoint()
+    limit = current().forward_jacobian_max
+    if n_scalars <= limit:
+        return OnePassJacobian()
+    return Autodiff(why=f"more than forward_jacobian_max = {limit} scalars")
+
+
+def differentiated(loop: Programs, fwd: Callable, program: str) -> Callable:
+    """``fwd`` (a run's forward program, ``(P, c0) -> (observations, final carry)``) with
+    the derivative `choose` picks for ``program``, decided per call from the tangents."""
+
+    @jax.custom_jvp
+    def f(P, c0):
+        return fwd(P, c0)
+
+    def f_jvp(primals, tangents):
+        nz, lin = _nonzero(primals, tangents)
+        if not lin and program in ("auto", "adjoint") and _HAVE_LINEAR_CALL_BATCHING:
+            out = fwd(*primals)
+            dys = jax.tree.map(jnp.zeros_like, out[0])
+            return out, (dys, _tangent_tree(out[1], [jnp.zeros_like(x) for x in _floats(out[1])]))
+        return choose(program, _size(lin)).jvp(loop, fwd, primals, tangents)
+
+    f.defjvp(f_jvp, symbolic_zeros=True)
+    return f
+
+
+def _jacobian_jvp(loop: Programs, P, c0, nz: list, lin: list, mP: tuple, mc: tuple, elements: list):
+    """The run's value and tangent from its Jacobian, computed in one pass.
+
+    ``lin`` (the nonzero input tangents, ``n`` scalars in all) is flattened into
+    a coefficient vector; the Jacobian program runs the unit tangents as ``n``
+    columns over one primal (no residuals, nothing recomputed), and the tangent
+    is each column scaled by its coefficient. Under ``jacfwd`` the columns are
+    computed once for every basis vector; under ``grad`` JAX transposes the
+    contraction. The same program runs scalarized under ``vmap`` of 16 runs or
+    more (the policy's ``batched_layout``).
+
+    ``elements`` (`_tangent_masks`) and the frame rules decide, per observation, what
+    the loop saves (`_Loop.obs_kinds`): nothing where the tangent is zero (the
+    reference attitude of a gain's derivative), three numbers a column for a rotation.
+    A seed trajectory's columns take 15 numbers a point instead of 25.
+    """
+    pf, cf = _floats(P), _floats(c0)
+    cols = _unit_columns(lin)
+    n = len(cols[0])
+    mc = _with_frames(mc, c0, nz[len(pf) :])
+    mo = loop.obs_kinds(mP, mc, P, c0, elements)
+    dP, dc = _masked_tangents(nz, cols, mP, mc, pf, cf, (n,))
+    jac = _dual(
+        functools.partial(loop.jac_array, mP, mc, mo),
+        functools.partial(loop.jac_scalar, mP, mc, mo),
+        "jacobian",
+        settle=functools.partial(_settle_jacobian_tangents, loop, mP, mc),
+    )
+    ys, cN, Jys, JcN = jac(P, c0, dP, dc)
+    coef = jnp.concatenate([jnp.ravel(x) for x in lin])
+
+    # Observations without a tangent get zeros here (the loop neither computes nor saves
+    # them); frames become dense here, where their three numbers are contracted first.
+    J_it = iter(Jys)
+    dys = []
+    for y, kind in zip(jax.tree.leaves(ys), mo, strict=True):
+        if kind == OBS_ZERO:  # symbolic: no zeros are made, batched or masked downstream
+            dys.append(SymbolicZero(jax.typeof(y).to_tangent_aval()))
+            continue
+        J = next(J_it)
+        d = jnp.tensordot(coef.astype(J.dtype), J, axes=([0], [1]))
+        dys.append(d if kind == OBS_DENSE else _frame_dense(y, d, kind == OBS_LEFT))
+    dys = jax.tree.unflatten(jax.tree.structure(ys), dys)
+    dcN = [jnp.tensordot(coef.astype(J.dtype), J, axes=1) for J in JcN]
+    dcNf = _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(cN)])
+    return (ys, cN), (dys, _tangent_tree(cN, dcNf))
+
+
+def _settle_carry_tangents(step, primals, p_leaves, t_leaves, nz) -> tuple[list, list]:
+    """``(t_leaves, nz)`` with a zero tangent, not a symbolic one, for each initial carry
+    leaf that a step gives a nonzero tangent (`_tangent_masks`), flagged nonzero.
+
+    JAX's ``jvp`` of a ``scan`` finds which carry tangents are nonzero by
+    differentiating the body until nothing changes, and under ``grad`` its partial
+    evaluator finds the unknown carry the same way; in the checkpointed program the
+    inner loop is differentiated again on every pass of the outer one. Starting those
+    leaves with a zero tangent settles both in one pass. The zero is computed from an
+    input tangent (`_zero_like_tangent`), so the partial evaluator sees it as unknown too.
+    """
+    P, c0 = primals
+    n_P = len(jax.tree.leaves(P))
+    floats = [_is_float(x) for x in p_leaves]
+    nz_P, nz_c = _pick(floats[:n_P], nz[:n_P]), _pick(floats[n_P:], nz[n_P:])
+    sources = [t for t, z, f in zip(t_leaves, nz, floats, strict=True) if z and f and t.size]
+    if not sources or all(nz_c):
+        return t_leaves, nz
+    _, mc = _tangent_masks(step, P, c0, nz_P, nz_c)
+    it = iter(mc)
+    t_leaves, nz = list(t_leaves), list(nz)
+    for i in range(n_P, len(p_leaves)):
+        if floats[i] and next(it) and not nz[i]:
+            t_leaves[i], nz[i] = _zero_like_tangent(p_leaves[i], sources[0]), True
+    return t_leaves, nz
+
+
+def _settle_jacobian_tangents(loop: Programs, mP, mc, primals, p_leaves, t_leaves, nz):
+    """`_settle_carry_tangents` for the Jacobian program (`_Loop.jac_array`), whose
+    arguments ``(P, c0, dP, dc0)`` are a loop's parameters ``(P, dP)`` and its carry
+    ``(c0, dc0)``: the carry tangents of second derivatives (`_dual_jvp`)."""
+    sizes = [len(jax.tree.leaves(x)) for x in primals]
+    a, b, c = np.cumsum(sizes)[:3].tolist()
+    order = [*range(a), *range(b, c), *range(a, b), *range(c, len(p_leaves))]
+    P, c0, dP, dc0 = primals
+    t, z = _settle_carry_tangents(
+        functools.partial(loop.jac_step, mP, mc),
+        ((P, dP), (c0, dc0)),
+        [p_leaves[i] for i in order],
+        [t_leaves[i] for i in order],
+        [nz[i] for i in order],
+    )
+    back = np.argsort(order).tolist()
+    return [t[i] for i in back], [z[i] for i in back]
+
+
+# --------------------------------------------------------------------------
+# the same pieces for programs outside the fixed-step engine
+# --------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Flagged:
+    """A ``custom_jvp`` rule's inputs (``symbolic_zeros=True``) split into the leaves it
+    differentiates (float leaves with a nonzero tangent, `xs` and their tangents `ts`)
+    and the rest.
+
+    `at` rebuilds the inputs with the differentiated leaves replaced.
+    """
+
+    leaves: list
+    treedef: object
+    nz: list
+    t_leaves: list
+
+    @classmethod
+    def of(cls, primals, tangents) -> Flagged:
+        leaves, treedef = jax.tree.flatten(primals)
+        t_leaves, nonzero = _tangent_leaves(tangents)
+        nz = [z and _is_float(x) for x, z in zip(leaves, nonzero, strict=True)]
+        return cls(leaves, treedef, nz, t_leaves)
+
+    @property
+    def xs(self) -> list:
+        return _pick(self.nz, self.leaves)
+
+    @property
+    def ts(self) -> list:
+        return _pick(self.nz, self.t_leaves)
+
+    @property
+    def n(self) -> int:
+        """The number of differentiated scalars."""
+        return _size(self.xs)
+
+    def pick(self, leaves: list) -> list:
+        """The differentiated entries of ``leaves`` (every input's leaves, in order)."""
+        return _pick(self.nz, leaves)
+
+    def at(self, xs, others: list | None = None):
+        """The inputs (a pytree) with the differentiated leaves set to ``xs`` and the others
+        from ``others`` (default: the primals)."""
+        base = self.leaves if others is None else others
+        return jax.tree.unflatten(self.treedef, _fill(self.nz, list(xs), base))
+
+
+def jvp_through(fn: Callable, flagged: Flagged):
+    """JAX's ``jvp`` of ``fn(*inputs)`` through the differentiated leaves of ``flagged`` alone
+    (the others enter as constants: no tangent term where they are used)."""
+    return _jvp_through(fn, flagged.treedef, flagged.leaves, flagged.t_leaves, flagged.nz)
+
+
+def float_leaves(tree) -> list:
+    """The float leaves of ``tree``, in order: what derivatives flow through."""
+    return _floats(tree)
+
+
+def tangent_tree(out, float_tangents):
+    """A tangent pytree for ``out``: ``float_tangents`` for its float leaves (in order),
+    ``float0`` zeros for integer and boolean ones."""
+    return _tangent_tree(out, float_tangents)
+
+
+@dataclasses.dataclass(frozen=True)
+class ForwardColumns:
+    """The one-pass Jacobian of a program JAX differentiates in forward mode.
+
+    `jvp` runs ``fn(xs, others)`` with the ``n`` unit tangents of ``xs`` batched over one
+    primal (``jax.jvp`` under ``vmap``, the primal unbatched) and returns the value and
+    the Jacobian times the input tangents. Differentiated again, its reverse mode runs
+    the ``jvp`` by columns (`forward_differentiated`), so ``jacrev`` of ``jacfwd`` works
+    through a ``while_loop``.
+    """
+
+    def jvp(self, fn: Callable, flagged: Flagged):
+        xs = flagged.xs
+
+        def jacobian(xs, others):
+            def g(*x):
+                out = fn(x, others)
+                return _floats(out), out
+
+            def column(*ts):
+                return jax.jvp(g, tuple(xs), ts, has_aux=True)[1:]
+
+            dout, out = jax.vmap(column, out_axes=(0, None))(*_unit_columns(xs))
+            return out, dout
+
+        others = _fill(flagged.nz, [jnp.zeros_like(x) for x in xs], flagged.leaves)
+        out, J = forward_differentiated(jacobian)(list(xs), others)
+        coef = jnp.concatenate([jnp.ravel(t) for t in flagged.ts])
+        dout = [jnp.tensordot(coef.astype(Jk.dtype), Jk, axes=1) for Jk in J]
+        return out, _tangent_tree(out, dout)
+
+
+@dataclasses.dataclass(frozen=True)
+class CustomTranspose:
+    """A tangent program with a transpose of one's own: ``tangent(res, ts)`` (linear in
+    ``ts``) and ``transpose(res, cts)``, where ``res`` are every input's leaves.
+
+    Neither function may close over the rule's trace (JAX may trace the transpose in
+    another): every input they need is in ``res``. Differentiating the residuals (a
+    second derivative) raises ``NotImplementedError(why)``.
+    """
+
+    why: str
+
+    def jvp(self, out, tangent: Callable, transpose: Callable, flagged: Flagged):
+        res = first_order_only(self.why, list(flagged.leaves))
+        dout = linear_call(tangent, transpose, res, flagged.ts)
+        return out, _tangent_tree(out, dout)

@@ -1,0 +1,113 @@
+"""The reference programs: a plain ``lax.scan`` and its checkpointed segments.
+
+This is what a run is, before any pass: the step applied ``n_steps`` times under
+``lax.scan``, observed every ``save_every`` steps; and, for reverse mode, the same loop
+in segments of about ``sqrt(n_steps)`` steps under `jax.checkpoint`, whose memory grows
+like ``sqrt(n_steps)`` (Griewank & Walther, *Evaluating Derivatives*, SIAM 2008, ch. 12).
+Both are always available, never re-interpreted: with every pass off
+(``so3jax._engine.policy.using(passes=frozenset())``) and ``program="autodiff"``, a run
+is `Loop.fwd_checkpointed` differentiated and batched by JAX alone.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+
+from .policy import current
+
+
+def _segment_blocks(n: int, target: int) -> int:
+    """Blocks per segment: a divisor of ``n`` within 2x of ``target`` if there is one.
+
+    A divisor needs no padded tail (whose masks cost a select per carry leaf
+    and step); otherwise ``target`` itself, and the last segment is padded.
+    """
+    target = max(1, min(n, target))
+    for d in sorted(
+        range(max(1, target // 2), min(n, 2 * target) + 1), key=lambda d: abs(d - target)
+    ):
+        if n % d == 0:
+            return d
+    return target
+
+
+def checkpoint_length(n_steps: int) -> int:
+    """Steps per checkpointed segment: about ``sqrt(n_steps)``."""
+    return max(1, math.ceil(math.sqrt(n_steps)))
+
+
+class Loop:
+    """The reference programs of one fixed-step loop: ``lax.scan`` of the step as written.
+
+    ``step(P, c) -> c`` and ``observe(P, c) -> pytree`` are pure; the loop takes
+    ``n_steps`` steps and observes after every ``save_every``-th. `fwd_array` is the
+    plain program; `fwd_checkpointed` the same in checkpointed segments of about ``K``
+    steps, what JAX's autodiff differentiates on the reference path. Every other
+    program of the engine (`so3jax._engine.programs.Programs`) equals these to
+    round-off.
+    """
+
+    def __init__(self, step, observe, n_steps: int, save_every: int, K: int):
+        self.step, self.observe = step, observe
+        self.n, self.save_every, self.n_save = n_steps, save_every, n_steps // save_every
+        self.K = min(K, n_steps)
+        self.S = -(-n_steps // self.K)
+
+    def _repeat(self, fn, x):
+        """``save_every`` applications of ``fn`` under ``lax.scan``."""
+        return jax.lax.scan(
+            lambda x, _: (fn(x), None),
+            x,
+            None,
+            length=self.save_every,
+            unroll=current().scan_unroll,
+        )[0]
+
+    def _save_loop(self, body, observe, x0):
+        """``n_save`` blocks of ``save_every`` applications of ``body``, observed after each."""
+
+        def block(x, _):
+            x = body(x) if self.save_every == 1 else self._repeat(body, x)
+            return x, observe(x)
+
+        unroll = current().scan_unroll if self.save_every == 1 else 1
+        return jax.lax.scan(block, x0, None, length=self.n_save, unroll=unroll)
+
+    # ---------------- forward ----------------
+
+    def fwd_array(self, P, c0):
+        cN, ys = self._save_loop(lambda c: self.step(P, c), lambda c: self.observe(P, c), c0)
+        return ys, cN
+
+    def fwd_checkpointed(self, P, c0):
+        """The array program with checkpointed segments: what plain autodiff differentiates.
+
+        Save blocks are grouped into segments of about ``K`` steps, each under
+        `jax.checkpoint`, so reverse mode stores one carry per segment and
+        recomputes a segment's residuals when it transposes it: memory
+        ``~ n / K + K`` steps instead of ``n``. The last segment is padded
+        with blocks that leave the carry alone.
+        """
+        step, obs = self.step, self.observe
+        m = _segment_blocks(self.n_save, max(1, round(self.K / self.save_every)))
+        S = -(-self.n_save // m)
+        padded = S * m != self.n_save
+
+        def block(c, i):
+            c1 = step(P, c) if self.save_every == 1 else self._repeat(lambda c: step(P, c), c)
+            o = obs(P, c1)
+            if padded:
+                c1 = jax.tree.map(lambda a, b: jnp.where(i < self.n_save, a, b), c1, c)
+            return c1, o
+
+        @functools.partial(jax.checkpoint, prevent_cse=False)
+        def segment(c, s):
+            return jax.lax.scan(block, c, s * m + jnp.arange(m))
+
+        cN, ys = jax.lax.scan(segment, c0, jnp.arange(S))
+        ys = jax.tree.map(lambda a: a.reshape((S * m,) + a.shape[2:])[: self.n_save], ys)
+        return ys, cN

@@ -1,0 +1,166 @@
+"""The ``"hoist"`` pass: each loop of a program compiled as one kernel on a CPU.
+
+Program in, program out: `_hoisted` takes a loop (a ``lax.scan`` and its arguments) and
+returns its results from the same loop, traced once, staged as a jitted call that XLA's
+older CPU emitter compiles whole (``xla_cpu_small_call``). Where it cannot (a primitive
+outside `_HOISTABLE`, a leaf over the policy's ``hoist_max_bytes``, a second derivative,
+another backend), the loop runs as traced. The results are the loop's, to round-off:
+``tests/passes/test_hoist.py``. Speed: ``benchmarks/emitters.py`` and
+``benchmarks/ablation.py``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import math
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+from jax.extend import core as jex_core
+
+from .. import _jax, plan as _plan
+from ..policy import current, one_cpu_device
+from . import scalarize as sc
+from .unroll import _UNROLLED, _unrolled
+
+#: What is being traced, innermost last (`_tracing`): the runs in its batch (a vmapped
+#: program sees one run's shapes), whether its loops may be hoisted, and whether loops
+#: with reductions may.
+_TRACING: contextvars.ContextVar[tuple] = contextvars.ContextVar(
+    "so3jax_tracing", default=(1, True, True)
+)
+
+
+@contextlib.contextmanager
+def _tracing(what: str, runs: int = 1):
+    """Trace program ``what`` (a `_dual`'s) in a batch of ``runs`` runs.
+
+    - Nothing is hoisted inside the ``"jvp"`` programs of second derivatives
+      (`_dual_jvp`), nor in what they trace: hoisted, ``jax.hessian`` runs faster but
+      compiles more than twice as long, which a second derivative rarely repays.
+    - Only forward runs hoist loops with reductions; a derivative program's are written
+      out first (`_unrolled`). A derivative program's loop can be batched again after
+      `_hoisted` chose, by a ``vmap`` around a derivative JAX staged (no Python of ours
+      runs then), and its reductions would then grow past `HOIST_MAX_REDUCED`:
+      ``vmap`` of ``grad`` over 5 gain sets of the mean cost over 16 starts failed to
+      compile so ("Fusion kind not implemented on CPU"). A forward run is batched
+      through its own ``custom_vmap`` rule, which sizes it again.
+    """
+    n, hoist, _ = _TRACING.get()
+    token = _TRACING.set(
+        (n * int(runs), hoist and what != "jvp", what in ("run", "scalar", "array"))
+    )
+    try:
+        yield
+    finally:
+        _TRACING.reset(token)
+
+
+#: Primitives a hoisted loop may hold. XLA compiles the loop with its older CPU
+#: emitter, which refuses dots, convolutions, scatters and custom calls (linear
+#: algebra, callbacks, sorting, FFTs): a loop with anything not listed runs as before.
+_HOISTABLE = frozenset(
+    """abs acos acosh add add_any and asin asinh atan atan2 atanh broadcast_in_dim cbrt ceil
+    checkpoint clamp closed_call concatenate cond convert_element_type copy copy_p cos
+    cosh custom_jvp_call custom_vjp_call custom_vjp_call_jaxpr custom_vmap_call div
+    dynamic_slice dynamic_update_slice eq erf erf_inv erfc exp exp2 expm1 expand_dims floor
+    ge gt integer_pow iota is_finite jit le log log1p logistic lt max min mul ne neg
+    nextafter not optimization_barrier or pjit pow reduce_and reduce_max reduce_min
+    reduce_or reduce_precision reduce_prod reduce_sum rem remat2 reshape rev round rsqrt scan
+    select_n sign sin sinh slice sqrt square squeeze stack stop_gradient sub tan tanh
+    transpose unstack while xor""".split()
+)
+
+
+def _hoistable(jaxpr, runs: int = 1, reductions: bool = True) -> bool:
+    """Whether every equation of ``jaxpr`` (nested ones too) is in `_HOISTABLE`, with no
+    reduction (none at all without ``reductions``) over more than `HOIST_MAX_REDUCED`
+    elements in a batch of ``runs`` runs (``runs=0``: whatever its reductions)."""
+    for e in jaxpr.eqns:
+        if e.primitive.name not in _HOISTABLE:
+            return False
+        if e.primitive.name in _UNROLLED:
+            if (
+                not reductions
+                or math.prod(e.invars[0].aval.shape) * runs > current().hoist_max_reduced
+            ):
+                return False
+        if not all(_hoistable(j, runs, reductions) for j in sc.subjaxprs(e.params)):
+            return False
+    return True
+
+
+def _hoisted(loop: Callable, *args):
+    """``loop(*args)`` (a `lax.scan`), compiled as one kernel on a CPU.
+
+    XLA's CPU runtime runs a loop body as one kernel per fusion: some 300 a step
+    for the seed's batched forward pass, 640 for its Jacobian program, each
+    dispatched on its own and handed between the threads of XLA's pool. A call
+    tagged ``xla_cpu_small_call`` (and kept from inlining) is compiled whole into
+    one function by XLA's older CPU emitter, as XLA's own small-loop pass does
+    for loops under 1 kB (``xla_cpu_small_while_loop_byte_threshold``, a process
+    flag). That makes the seed's forward pass about three times faster, for a batch
+    and for a single run (``benchmarks/emitters.py``).
+
+    The loop's inputs pass an `optimization_barrier` first: XLA otherwise sinks
+    constant operands (a batch of starts closed over as a constant) into the call,
+    and the older emitter aborts on constants of more than about 10 kB. The call
+    also returns its inputs (unused): so they stay live to its end, and XLA cannot
+    hand an input's memory to a value inside the loop. On JAX 0.11 and 0.12 it did
+    (a loop's carry in an input's place, at the same offset, larger), and the older
+    emitter then aborted the process (``Check failed:
+    slice_to_buffer_table_index_.empty() || has_explicit_index``; the gradient of a
+    free body's run whose start was a constant of the jitted cost). A loop that
+    holds reductions where `_tracing` allows none (a derivative program's), or one
+    over more than `HOIST_MAX_REDUCED` elements, is hoisted with its reductions written
+    out (`_unrolled`) if that is all that stood in the way. Loops with a primitive
+    outside `_HOISTABLE` or a reduction over more than `UNROLL_MAX_TERMS` terms and
+    `HOIST_MAX_REDUCED` elements, loops whose largest input leaf takes more than
+    `HOIST_MAX_BYTES` over the batch, second derivatives' loops (`_tracing`), every
+    loop off a CPU, and every loop
+    where JAX sees more than one device run as before: XLA partitions a sharded program after
+    this choice, and a hoisted loop then calls collectives the older emitter cannot
+    link (``__xla_cpu_runtime_AllReduce``, ``__xla_cpu_runtime_PartitionId``).
+    """
+    runs, hoist, reductions = _TRACING.get()
+    policy = current()
+    if _jax.set_xla_metadata is None or not policy.on("hoist") or not hoist:
+        why = "off (the policy's passes)" if hoist else "a second derivative's loop"
+        _plan.note("hoisting", hoisted=False, runs=runs, why=why)
+        return loop(*args)
+    if not one_cpu_device():
+        _plan.note("hoisting", hoisted=False, runs=runs, why="not a single CPU device")
+        return loop(*args)
+    leaves = jax.tree.leaves(args)
+    per_run = max((jnp.size(x) * jnp.result_type(x).itemsize for x in leaves), default=0)
+    if per_run * runs > policy.hoist_max_bytes:
+        _plan.note(
+            "hoisting", hoisted=False, runs=runs, why="a leaf over the policy's hoist_max_bytes"
+        )
+        return loop(*args)
+    closed, shape = jax.make_jaxpr(loop, return_shape=True)(*args)
+    hoisted = closed
+    if not _hoistable(closed.jaxpr, runs, reductions) and _hoistable(closed.jaxpr, 0):
+        hoisted = _unrolled(closed)  # only reductions stand in the way: write them out
+    if not _hoistable(hoisted.jaxpr, runs, reductions):  # run the traced loop, not again
+        _plan.note(
+            "hoisting",
+            hoisted=False,
+            runs=runs,
+            why="a primitive or reduction XLA's older emitter refuses",
+        )
+        outs = jex_core.jaxpr_as_fun(closed)(*leaves)
+        return jax.tree.unflatten(jax.tree.structure(shape), outs)
+    _plan.note("hoisting", hoisted=True, runs=runs, unrolled=hoisted is not closed)
+    consts, leaves = jax.lax.optimization_barrier((list(hoisted.consts), leaves))
+
+    @jax.jit
+    def call(consts, leaves):
+        outs = jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(hoisted.jaxpr, consts))(*leaves)
+        return outs, (consts, leaves)
+
+    with _jax.set_xla_metadata(xla_cpu_small_call="true", inlineable="false"):
+        outs, _ = call(consts, leaves)
+    return jax.tree.unflatten(jax.tree.structure(shape), outs)

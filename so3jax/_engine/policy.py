@@ -1,0 +1,338 @@
+"""Every threshold and switch of the engine, in one frozen object.
+
+A `Policy` says which optimisation passes run (`PASSES`) and every number the engine
+decides by: the batch sizes from which a program runs scalarized, tiles, the largest
+hoisted loop, the most scalars differentiated in one pass. The engine reads the
+active policy at trace time (`current`); `using` activates another for a block of
+code, in the current thread and context only:
+
+    with so3jax._engine.policy.using(passes=frozenset()):  # the reference path
+        ...
+
+The default (`DEFAULT`) is built once at import, from the tables below and three
+environment variables, read then and never again:
+
+- ``SO3JAX_PASSES``: ``all`` (the default), ``none``, or the comma-separated names of
+  the passes to run (`PASSES`);
+- ``SO3JAX_HOIST_LOOPS``: ``0`` or ``1``, the ``"hoist"`` pass off or on whatever
+  `hoisting_verified` says;
+- ``SO3JAX_FRAME_TANGENTS``: ``0`` turns the ``"frames"`` pass off.
+
+so3jax's jitted entry points key their compiled programs by the active policy
+(`so3jax._engine.plan.jit`), so a call under another policy traces again; JAX's own
+caches of the batched and differentiated programs inside do not know the policy, so call
+`jax.clear_caches` after changing it (``benchmarks/_common.py``'s ``engine_settings``
+does). Each pass
+proves its equality with the reference path in ``tests/passes/``; what each one buys
+is measured by ``benchmarks/ablation.py``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import dataclasses
+import functools
+import os
+import warnings
+from collections.abc import Callable
+
+import jax
+
+from . import _jax
+
+__all__ = ["PASSES", "Policy", "DEFAULT", "current", "using"]
+
+#: The engine's optimisation passes, each a module of `so3jax._engine.passes`:
+#:
+#: - ``"scalarize"``: a large batch runs as the structure-of-arrays program;
+#: - ``"cuts"``: fusion cuts where XLA on CPU would recompute shared values;
+#: - ``"frames"``: attitude tangents as three numbers in the Jacobian programs;
+#: - ``"hoist"``: each loop one kernel on a CPU;
+#: - ``"unroll"``: small reductions written out term by term (so derivative loops hoist);
+#: - ``"tiles"``: a large batch of Jacobian programs in cache-sized tiles.
+#:
+#: With none of them, a run executes the array program (``lax.scan`` of the step as
+#: written), vmapped by JAX under ``vmap``; derivatives keep their strategy
+#: (`so3jax._engine.derivatives`).
+PASSES = frozenset({"scalarize", "cuts", "frames", "hoist", "unroll", "tiles"})
+
+
+def hoisting_verified() -> bool:
+    """Whether the installed jaxlib is one of the releases the suite passes on with loops
+    hoisted (`so3jax._engine._jax.TESTED`): XLA's older emitter aborts the process, not
+    raises, where it cannot compile a hoisted loop."""
+    try:
+        import jaxlib
+
+        release = tuple(int(x) for x in jaxlib.__version__.split(".")[:2])
+    except (ImportError, AttributeError, ValueError):
+        return False
+    return release in _jax.TESTED
+
+
+@dataclasses.dataclass(frozen=True)
+class Policy:
+    """The engine's thresholds and switches (frozen and hashable: a jit cache key).
+
+    Tables are tuples of ``(key, value)`` pairs (a dict given for one is converted);
+    read them through the methods. Batch-size thresholds are numbers of runs; ``None``
+    means never.
+    """
+
+    #: The passes that run (`PASSES`).
+    passes: frozenset = PASSES
+    #: How each program runs under ``vmap``, by batch size: ``(s, c)`` runs the
+    #: scalarized program for batches of ``s`` runs or more (the array program, vmapped,
+    #: below that) and cuts its fusion (CPU only) from ``c`` runs on. ``"scalar"`` and
+    #: ``"array"`` are ``program="scalar"`` and ``"array"`` (benchmarks); ``"jvp"``: the
+    #: programs of second derivatives. Each entry is where the scalarized program pays
+    #: for its longer compile within the calls a sweep or a `tune` makes, on a 2-core CPU
+    #: with each loop one kernel; measured by ``benchmarks/layouts.py``.
+    batched_layout: tuple = (
+        ("run", (16, 16)),
+        ("scalar", (1, 64)),
+        ("tangent", (16, 16)),
+        ("jacobian", (16, 16)),
+        ("adjoint", (None, None)),
+        ("array", (None, None)),
+        ("jvp", (32, 32)),
+    )
+    #: On a GPU, the entries that differ from `batched_layout`. A GPU is latency bound in
+    #: either layout up to a few thousand runs, where the scalarized program compiles
+    #: several times longer: each entry scalarizes from where 100 calls with their compile
+    #: take less time than the array program's (``benchmarks/layouts.py`` on the GPUs
+    #: named in ``benchmarks/results/layouts-*gpu*.json``).
+    gpu_layout: tuple = (
+        ("run", (32768, None)),
+        ("jacobian", (16384, None)),
+        ("jvp", (4096, None)),
+    )
+    #: `so3jax.sweep`'s runs per chunk per device when none is given: a 2-core CPU is
+    #: throughput bound from a few hundred runs; a GPU is latency bound up to tens of
+    #: thousands (``benchmarks/sweep.py``).
+    sweep_chunk: tuple = (("cpu", 1024), ("gpu", 65536))
+    #: Whether `so3jax.sweep` steps its chunks scalarized by default, per platform: on a
+    #: GPU the compiled sweep runs about as fast in either layout and the array program
+    #: compiles several times faster (``benchmarks/sweep.py``).
+    sweep_scalarize: tuple = (("cpu", True), ("gpu", False))
+    #: XLA's options for the programs the library compiles itself (`jit_own`), per
+    #: platform: LLVM's ``-O2`` on CPU compiles hoisted loops faster and runs small
+    #: scalarized batches faster (``benchmarks/tune.py``). ``XLA_FLAGS`` wins.
+    own_compiler_options: tuple = (("cpu", (("xla_backend_optimization_level", 2),)),)
+    #: Values per scalar component in one tile of a batched Jacobian program (``"tiles"``):
+    #: a tile of ``m`` runs with ``n`` columns holds ``m (1 + n)``; a tile's values stay
+    #: in the core's cache where a whole batch's do not (``benchmarks/layouts.py``).
+    tile_values: int = 192
+    #: Tiles only for runs observing at most this many scalars per saved point (a cost's
+    #: integrand): where saved points dominate, tiles cost memory and do not pay.
+    tile_max_observed: int = 8
+    #: Tiles are a multiple of this many runs (float64 lanes of an AVX-512 register).
+    tile_multiple: int = 8
+    #: Steps per iteration of the step loops' ``lax.scan`` (its ``unroll``;
+    #: ``benchmarks/unroll.py``).
+    scan_unroll: int = 1
+    #: The largest input leaf of a hoisted loop, in bytes over a batch's runs: one
+    #: kernel gives up XLA's threads, which pay past that (``benchmarks/emitters.py``).
+    hoist_max_bytes: int = 64 * 1024
+    #: The most elements a reduction in a hoisted loop may read over the batch: past it
+    #: XLA makes a fusion kind its older CPU emitter does not implement.
+    hoist_max_reduced: int = 1024
+    #: The most terms of a reduction the ``"unroll"`` pass writes out (27: the 3-term sums
+    #: of 3x3 products, the 9-term sums of a Frobenius product).
+    unroll_max_terms: int = 27
+    #: A value with several consumers is cut (``"cuts"``) when XLA would recompute at
+    #: least this many operations for each of them (seed batches: 6 to 10 run alike).
+    cut_cone: int = 8
+    #: The cone from which values that tangent columns consume are cut
+    #: (``benchmarks/element_work.py``).
+    column_cut_cone: int = 4
+    #: Column cuts in the scalarized Jacobian program from batches of this many runs.
+    column_cuts_from: int = 32
+    #: Through at most this many differentiated scalars a run computes its Jacobian with
+    #: its value in one pass (`so3jax._engine.derivatives.OnePassJacobian`).
+    forward_jacobian_max: int = 8
+
+    def __post_init__(self):
+        unknown = set(self.passes) - PASSES
+        if unknown:
+            raise ValueError(f"passes: unknown {sorted(unknown)}; known: {sorted(PASSES)}")
+        object.__setattr__(self, "passes", frozenset(self.passes))
+        for field in ("batched_layout", "gpu_layout", "sweep_chunk", "sweep_scalarize"):
+            value = getattr(self, field)
+            if isinstance(value, dict):  # a table given as a dict (`using`, tests)
+                object.__setattr__(self, field, tuple(value.items()))
+        options = self.own_compiler_options
+        if isinstance(options, dict):
+            pairs = ((k, tuple(dict(v).items())) for k, v in options.items())
+            object.__setattr__(self, "own_compiler_options", tuple(pairs))
+
+    def on(self, name: str) -> bool:
+        """Whether pass ``name`` (one of `PASSES`) runs."""
+        return name in self.passes
+
+    def layout(self, what: str) -> tuple:
+        """``(s, c)`` for program ``what`` on the default backend; ``(None, None)`` (the
+        array program always) with the ``"scalarize"`` pass off, ``c = None`` with
+        ``"cuts"`` off."""
+        table = dict(self.batched_layout)
+        if jax.default_backend() == "gpu":
+            table.update(self.gpu_layout)
+        s, c = table[what]
+        if not self.on("scalarize"):
+            return None, None
+        return s, (c if self.on("cuts") else None)
+
+    def chunk(self, platform: str) -> int:
+        return dict(self.sweep_chunk)[platform]
+
+    def compiler_options(self, platform: str) -> dict:
+        return dict(dict(self.own_compiler_options).get(platform, ()))
+
+    def replace(self, **changes) -> Policy:
+        """A copy with ``changes`` (field names)."""
+        return dataclasses.replace(self, **changes)
+
+
+def _from_env() -> Policy:
+    """`DEFAULT`: the tables above and ``SO3JAX_PASSES``, ``SO3JAX_HOIST_LOOPS``,
+    ``SO3JAX_FRAME_TANGENTS`` (read once, here)."""
+    asked = os.environ.get("SO3JAX_PASSES", "all").strip().lower()
+    if asked in ("", "all"):
+        passes = set(PASSES)
+    elif asked == "none":
+        passes = set()
+    else:
+        passes = {p.strip() for p in asked.split(",") if p.strip()}
+        unknown = passes - PASSES
+        if unknown:
+            warnings.warn(
+                f"so3jax: SO3JAX_PASSES names unknown passes {sorted(unknown)}; "
+                f"known: {sorted(PASSES)}",
+                stacklevel=2,
+            )
+            passes &= PASSES
+    hoist = os.environ.get("SO3JAX_HOIST_LOOPS")
+    if (hoisting_verified() if hoist is None else hoist != "0") is False:
+        passes.discard("hoist")
+    if os.environ.get("SO3JAX_FRAME_TANGENTS", "1") == "0":
+        passes.discard("frames")
+    return Policy(passes=frozenset(passes))
+
+
+#: The policy in force unless `using` says otherwise (built once at import).
+DEFAULT = _from_env()
+
+_ACTIVE: contextvars.ContextVar[Policy] = contextvars.ContextVar("so3jax_policy", default=DEFAULT)
+
+
+def current() -> Policy:
+    """The active policy (`DEFAULT` outside `using`)."""
+    return _ACTIVE.get()
+
+
+@contextlib.contextmanager
+def using(policy: Policy | None = None, **changes):
+    """Run a block under ``policy`` (default: the active one) with ``changes``.
+
+    ``using(passes=frozenset())`` is the reference path; ``using(passes=PASSES -
+    {"hoist"})`` everything but one pass.
+    """
+    new = (policy or current()).replace(**changes)
+    token = _ACTIVE.set(new)
+    try:
+        yield new
+    finally:
+        _ACTIVE.reset(token)
+
+
+# --------------------------------------------------------------------------
+# decisions read from the policy
+# --------------------------------------------------------------------------
+
+
+def one_cpu_device() -> bool:
+    """Whether JAX runs on one CPU device: where the engine's CPU-only choices (hoisted
+    loops, tiles) apply. A sharded program is XLA's to partition."""
+    return jax.default_backend() == "cpu" and jax.device_count() == 1
+
+
+def batched_layout(what: str) -> tuple:
+    """``(s, c)`` for program ``what`` under the active policy (`Policy.layout`)."""
+    return current().layout(what)
+
+
+def own_compiler_options() -> dict | None:
+    """The active policy's compiler options for the default backend, less what
+    ``XLA_FLAGS`` sets; or ``None``."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    options = current().compiler_options(jax.default_backend())
+    options = {k: v for k, v in options.items() if f"--{k}=" not in flags}
+    return options or None
+
+
+def jit_own(fn: Callable) -> Callable:
+    """``jax.jit(fn)`` for a program the library compiles itself, with `own_compiler_options`.
+
+    Should XLA not know an option (a later jaxlib may drop one), the program compiles with
+    XLA's defaults instead, with a warning.
+    """
+    plain = jax.jit(fn)
+    options = own_compiler_options()
+    if options is None:
+        return plain
+    try:
+        tuned = jax.jit(fn, compiler_options=options)
+    except TypeError:  # pragma: no cover - a JAX whose `jit` takes no compiler options
+        return plain
+    rejected = []
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if not rejected:
+            try:
+                return tuned(*args, **kwargs)
+            except Exception as e:  # XLA's error type moves between JAX versions
+                if "compile option" not in str(e):
+                    raise
+                rejected.append(e)
+                warnings.warn(
+                    f"so3jax: XLA rejected the compile options {options} ({e}); "
+                    "compiling with its defaults",
+                    stacklevel=2,
+                )
+        return plain(*args, **kwargs)
+
+    return call
+
+
+def sweep_scalarize(devices) -> bool:
+    """Whether `so3jax.sweep` over ``devices`` runs the scalarized program by default (a
+    TPU counts as a GPU; never with the ``"scalarize"`` pass off)."""
+    platform = "cpu" if list(devices)[0].platform == "cpu" else "gpu"
+    return current().on("scalarize") and dict(current().sweep_scalarize)[platform]
+
+
+def sweep_chunk(devices, n_saved: int, itemsize: int) -> int:
+    """Default runs per chunk of `so3jax.sweep` over ``devices``.
+
+    The policy's chunk for the devices' platform, per device; on an accelerator at most
+    as many runs as keep ``n_saved`` saved points of every run (48 numbers each, of
+    ``itemsize`` bytes) within half the smallest device's memory (16 GiB where a device
+    does not say), and at least the CPU's chunk. The peak memory of a seed chunk is
+    about 34 numbers a saved point; 48 leaves room for a quadrotor's state.
+    """
+    devices = list(devices)
+    policy = current()
+    if devices[0].platform == "cpu":
+        return policy.chunk("cpu") * len(devices)
+    known = []  # a TPU counts as a GPU
+    for d in devices:
+        try:
+            known.append((d.memory_stats() or {}).get("bytes_limit"))
+        except Exception:  # a backend without memory statistics
+            pass
+    known = [x for x in known if x]
+    budget = (min(known) if known else 16 * 2**30) // 2  # unknown: a 16 GiB device
+    fits = budget // (n_saved * 48 * itemsize)
+    return max(policy.chunk("cpu"), min(policy.chunk("gpu"), fits)) * len(devices)

@@ -1,0 +1,421 @@
+"""The engine's programs of one loop beyond the reference: both layouts, and derivatives.
+
+`Programs` extends the reference `so3jax._engine.loop.Loop` with:
+
+- the scalarized forward program (`fwd_scalar`, the ``"scalarize"`` pass's layout);
+- the tangent programs (forward mode over the leaves that can have a tangent,
+  `so3jax._engine.masks`), in both layouts;
+- the Jacobian programs (the primal once and ``n`` unit tangents batched over it, with
+  attitude tangents as three numbers in the scalarized layout: the ``"frames"`` pass);
+- the discrete adjoint (a backward scan of ``jax.vjp`` of one step, states recomputed
+  from checkpoints every ``K`` steps).
+
+Each equals JAX's own derivative of the reference to round-off
+(``tests/test_engine.py``, ``tests/passes/``). References: A. Griewank, A. Walther,
+*Evaluating Derivatives*, SIAM 2008 (vector forward mode and discrete adjoints, ch. 3;
+checkpointing, ch. 12).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import warnings
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+
+from . import plan as _plan
+from .loop import Loop
+from .masks import _abstract_jaxpr, _mask_eval
+from .passes import scalarize as sc
+from .passes.frames import (
+    OBS_ZERO,
+    FrameError,
+    _dense_mask,
+    _frame_flags,
+    _frame_observe,
+    _frame_step,
+    _from_frames,
+    _jvp_with_frames,
+    _obs_kind,
+    _obs_tangent,
+    _to_frames,
+)
+from .passes.hoist import _TRACING, _hoisted
+from .policy import current
+from .trees import _component_flags, _fill, _floats, _pick, _with_floats
+
+
+class Programs(Loop):
+    """`Loop`'s reference programs with the scalarized layout and the derivative programs."""
+
+    def fwd_scalar(self, P, c0, cut=None, batched=None, one=None):
+        ex = (P, c0)
+        body, _ = sc.flat_program(lambda pc: (pc[0], self.step(*pc)), ex, cut)
+        obs, obs_struct = sc.flat_program(lambda pc: self.observe(*pc), ex, cut)
+        flat = sc.split(ex)
+        if batched is not None:
+            flat = sc.settle_batched(body, flat, _component_flags(ex, batched), one)
+        flat, ys = _hoisted(functools.partial(self._save_loop, body, obs), flat)
+        _, cN = sc.join(flat, jax.eval_shape(lambda: ex))
+        return sc.join(ys, obs_struct, (self.n_save,)), cN
+
+    # ---------------- tangent (forward mode) ----------------
+    #
+    # The tangent programs carry tangents for the masked float leaves only: ``mP``
+    # flags the parameters being differentiated, ``mc`` the carry leaves whose
+    # tangent can be nonzero (`_tangent_masks`). Every other leaf is held at its
+    # primal value, so no operation pays for a tangent that is known to be zero.
+
+    @staticmethod
+    def _masked(fn, mP, mc, P, c):
+        """``(g, Pm, cm)``: ``fn(P, c)`` as ``g(Pm, cm)``, a function of the float leaves of
+        ``P`` and ``c`` flagged in ``mP`` and ``mc`` (the others held at ``P`` and ``c``),
+        and those leaves."""
+        pf, cf = _floats(P), _floats(c)
+
+        def g(Pm, cm):
+            return fn(_with_floats(P, _fill(mP, Pm, pf)), _with_floats(c, _fill(mc, cm, cf)))
+
+        return g, _pick(mP, pf), _pick(mc, cf)
+
+    def _tstep(self, mP, mc, x):
+        P, c, dP, dc = x
+
+        def step(P, c):
+            c1 = self.step(P, c)
+            return _pick(mc, _floats(c1)), c1
+
+        g, Pm, cm = self._masked(step, mP, mc, P, c)
+        fr = _frame_flags(mc)
+        if any(fr):
+            dc1, c1 = _frame_step(g, Pm, cm, dP, dc, fr)
+            return P, c1, dP, dc1
+        _, dc1, c1 = jax.jvp(g, (Pm, cm), (list(dP), list(dc)), has_aux=True)
+        return P, c1, dP, dc1
+
+    def _tobs(self, mP, mc, x):
+        P, c, dP, dc = x
+        o, Pm, cm = self._masked(self.observe, mP, mc, P, c)
+        fr = _frame_flags(mc)
+        if any(fr):
+            return _frame_observe(o, Pm, cm, dP, dc, fr)
+        return jax.jvp(o, (Pm, cm), (list(dP), list(dc)))[1]
+
+    def _obs_tangents(self, mP, mc, x) -> tuple[list, list]:
+        """The observations after a state and their tangents as `frame_jvp` gives them
+        (``None``, an array or a `Frame`), as flat lists."""
+        P, c, dP, dc = x
+        o, Pm, cm = self._masked(self.observe, mP, mc, P, c)
+        outs, touts, _ = _jvp_with_frames(o, Pm, cm, dP, dc, _frame_flags(mc))
+        return outs, touts
+
+    def obs_kinds(self, mP, mc, P, c0, elements: list) -> tuple:
+        """Per observation leaf, its kind in the Jacobian programs (`OBS_ZERO`, ...): how
+        its tangent comes out of `frame_jvp` with the tangents ``mP``, ``mc`` (``mc``'s
+        `FRAME` leaves as frames), traced once, abstractly. `OBS_ZERO` too where no
+        element of it depends on the elements flagged in ``elements`` (per leaf of
+        ``(P, c0)``, `_tangent_masks`): the reference attitude observed from a carry
+        leaf that stacks it with the body's."""
+        pl, pt = jax.tree.flatten(P)
+        cl, ct = jax.tree.flatten(c0)
+
+        def obs(*leaves):
+            P_, c_ = (
+                jax.tree.unflatten(pt, leaves[: len(pl)]),
+                jax.tree.unflatten(ct, leaves[len(pl) :]),
+            )
+            return jax.tree.leaves(self.observe(P_, c_))
+
+        hit = [bool(m.any()) for m in _mask_eval(_abstract_jaxpr(obs, pl + cl), elements)]
+        pf, cf = _floats(P), _floats(c0)
+        fr = _frame_flags(mc)
+        kinds = []
+
+        def spec(x, frame=False):
+            shape = jnp.shape(x)[:-2] + (3,) if frame else jnp.shape(x)
+            return jax.ShapeDtypeStruct(shape, jnp.result_type(x))
+
+        def probe(dP, dc):
+            outs, touts = self._obs_tangents(mP, mc, (P, c0, dP, dc))
+            kinds[:] = [_obs_kind(o, t) for o, t in zip(outs, touts, strict=True)]
+            return 0
+
+        dP = [spec(x) for x in _pick(mP, pf)]
+        dc = [spec(x, f) for x, f in zip(_pick(mc, cf), fr, strict=True)]
+        jax.make_jaxpr(probe)(dP, dc)
+        return tuple(k if h else OBS_ZERO for k, h in zip(kinds, hit, strict=True))
+
+    def _jac_tobs(self, mP, mc, mo, x) -> list:
+        """The Jacobian programs' observation tangents of one column: the leaves whose
+        kind in ``mo`` is not `OBS_ZERO`, each as its kind stores it (`_obs_tangent`)."""
+        outs, touts = self._obs_tangents(mP, mc, x)
+        return [
+            _obs_tangent(o, t, k) for o, t, k in zip(outs, touts, mo, strict=True) if k != OBS_ZERO
+        ]
+
+    def tan_array(self, mP, mc, P, c0, dP, dc0):
+        step = functools.partial(self._tstep, mP, mc)
+        x, dys = self._save_loop(step, functools.partial(self._tobs, mP, mc), (P, c0, dP, dc0))
+        return dys, x[3]
+
+    def tan_scalar(self, mP, mc, P, c0, dP, dc0, cut=None, batched=None, one=None):
+        ex = (P, c0, dP, dc0)
+        body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut)
+        tobs, tobs_struct = sc.flat_program(functools.partial(self._tobs, mP, mc), ex, cut)
+        flat = sc.split(ex)
+        if batched is not None:
+            flat = sc.settle_batched(body, flat, _component_flags(ex, batched), one)
+        flat, dys = _hoisted(functools.partial(self._save_loop, body, tobs), flat)
+        x = sc.join(flat, jax.eval_shape(lambda: ex))
+        return sc.join(dys, tobs_struct, (self.n_save,)), x[3]
+
+    # ---------------- Jacobian (a few inputs: primal and columns in one pass) ----------------
+
+    def jac_array(self, mP, mc, mo, P, c0, dP, dc0):
+        """The run and its Jacobian's columns in one pass, array layout.
+
+        ``dP``, ``dc0`` are the masked tangents with a leading axis of ``n``
+        columns; the primal is computed once and the ``n`` tangents are batched
+        over it. Returns ``(ys, cN, dys, dcN)`` with a column axis after the
+        saved-point axis of ``dys`` and in front of ``dcN``. ``dys`` is a list: the
+        observations whose kind in ``mo`` (`obs_kinds`) is not `OBS_ZERO`, as their kind
+        stores them (`_obs_tangent`). Rotations' tangents are
+        nine numbers here whatever ``mc`` says (`FRAME`): three numbers as small arrays
+        of their own made the program about 1.8x slower on a CPU (more kernels).
+        """
+        mc = _dense_mask(mc)
+        tobs = functools.partial(self._jac_tobs, mP, mc, mo)
+
+        def observe(x):
+            P, c, dP, dc = x
+            cols = jax.vmap(lambda dP, dc: tobs((P, c, dP, dc)))
+            return self.observe(P, c), cols(dP, dc)
+
+        body = functools.partial(self._jac_body, mP, mc)
+        x, (ys, dys) = self._save_loop(body, observe, (P, c0, dP, dc0))
+        return ys, x[1], dys, x[3]
+
+    def _jac_body(self, mP, mc, x):
+        """One step of `jac_array`: ``(P, c, dP, dc)`` -> the same after the step."""
+        P, c, dP, dc = x
+        tstep = functools.partial(self._tstep, mP, mc)
+        cols = jax.vmap(lambda dP, dc: tstep((P, c, dP, dc)), out_axes=(None, None, 0, 0))
+        return cols(dP, dc)
+
+    def jac_step(self, mP, mc, Pj, cj):
+        """`_jac_body` as a step of a loop with parameters ``(P, dP)`` and carry
+        ``(c, dc)`` (`_settle_jacobian_tangents`)."""
+        (P, dP), (c, dc) = Pj, cj
+        _, c1, _, dc1 = self._jac_body(mP, _dense_mask(mc), (P, c, dP, dc))
+        return c1, dc1
+
+    def jac_scalar(self, mP, mc, mo, P, c0, dP, dc0, cut=None, batched=None, one=None):
+        """`jac_array` as a scalarized program: tangent components are ``(n,)`` arrays.
+
+        The carry leaves flagged `FRAME` in ``mc`` carry their tangents as `Frame`
+        ``xi`` (three numbers a rotation, `so3jax._engine.passes.frames`) inside; in and out
+        they are dense, as `jac_array`'s.
+        """
+        while any(_frame_flags(mc)):
+            try:
+                out = self._jac_scalar(mP, mc, mo, P, c0, dP, dc0, cut, batched, one)
+                _plan.note("frames", rotations=sum(_frame_flags(mc)))
+                return out
+            except FrameError as e:  # those leaves' tangents come out dense: nine numbers
+                at = [i for i, m in enumerate(mc) if m]
+                dense = {at[j] for j in e.indices}
+                mc = tuple(True if i in dense else m for i, m in enumerate(mc))
+        _plan.note("frames", rotations=0)
+        return self._jac_scalar(mP, mc, mo, P, c0, dP, dc0, cut, batched, one)
+
+    def _jac_scalar(self, mP, mc, mo, P, c0, dP, dc0, cut, batched, one):
+        fr = _frame_flags(mc)
+        if any(fr):
+            dc0 = _to_frames(_pick(mc, _floats(c0)), list(dc0), fr)
+        col = jax.tree.map(lambda a: a[0], (dP, dc0))  # one column: the example
+        ex = (P, c0) + col
+        n_primal = len(sc.split((P, c0)))
+        n_tangent = sum(math.prod(jnp.shape(a)) for a in jax.tree.leaves(col))
+        n = jnp.shape(jax.tree.leaves((dP, dc0))[0])[0]
+        # One column here: `_columns_outside` batches the tangents over the columns
+        # around this program, and its cuts count that (`sc._eval_with_cuts`).
+        columns = None
+        if n == 1 and _TRACING.get()[0] >= current().column_cuts_from:
+            columns = [False] * n_primal + [True] * n_tangent
+        body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut, columns=columns)
+        tobs, tobs_struct = sc.flat_program(
+            functools.partial(self._jac_tobs, mP, mc, mo), ex, cut, columns=columns
+        )
+        obs, obs_struct = sc.flat_program(lambda x: self.observe(x[0], x[1]), ex, cut)
+        flat0 = sc.split((P, c0)) + jax.vmap(sc.split)((dP, dc0))
+        if n == 1:  # one column (`_columns_outside`): scalar tangent components
+            vbody = body
+
+            def observe(flat):
+                return obs(flat), jax.tree.map(lambda a: a[None], tobs(flat))
+
+            flat0 = flat0[:n_primal] + [x[0] for x in flat0[n_primal:]]
+        else:
+            axes = [None] * n_primal + [0] * n_tangent
+            vbody = jax.vmap(body, in_axes=(axes,), out_axes=axes)
+            vtobs = jax.vmap(tobs, in_axes=(axes,))
+
+            def observe(flat):
+                return obs(flat), vtobs(flat)
+
+        if batched is not None:  # a column's components: the body's example
+            flags = _component_flags(ex, batched)
+            flat0 = sc.settle_batched(body, flat0, flags, one, [jnp.result_type(x) for x in flat0])
+        flat, (ys, dys) = _hoisted(functools.partial(self._save_loop, vbody, observe), flat0)
+        _, cN = sc.join(flat[:n_primal], jax.eval_shape(lambda: (P, c0)))
+        if n == 1:
+            flat = flat[:n_primal] + [x[None] for x in flat[n_primal:]]
+        _, dcN = sc.join(flat[n_primal:], jax.eval_shape(lambda: col), (n,))
+        if any(fr):
+            dcN = _from_frames(_pick(mc, _floats(cN)), list(dcN), fr)
+        ys = sc.join(ys, obs_struct, (self.n_save,))
+        return ys, cN, sc.join(dys, tobs_struct, (self.n_save, n)), dcN
+
+    # ---------------- adjoint (reverse mode) ----------------
+
+    def _masked_step(self, P, c, j):
+        """One step, or nothing past the end (the last segment is padded)."""
+        c1 = self.step(P, c)
+        return jax.tree.map(lambda a, b: jnp.where(j < self.n, a, b), c1, c)
+
+    def _vjp_step(self, x):
+        """Cotangents through step ``j`` and the observation after it, accumulated.
+
+        ``x = (P, c_j, lam, acc, ct_obs, is_save, valid)``: ``lam`` is the
+        cotangent of the state after step ``j`` (from later steps), ``ct_obs``
+        the cotangent of the observation of that state (used where ``is_save``).
+        Returns the cotangent of ``c_j`` and ``acc`` plus the parameters' share.
+        """
+        P, c, lam, acc, ct_o, is_save, valid = x
+
+        def h(Pf, cf):
+            Pp = _with_floats(P, Pf)
+            c1 = self.step(Pp, _with_floats(c, cf))
+            return _floats(c1), self.observe(Pp, c1)
+
+        _, pull = jax.vjp(h, _floats(P), _floats(c))
+        ct_o = jax.tree.map(lambda a: a * is_save.astype(a.dtype), ct_o)
+        gP, gc = pull((lam, ct_o))
+        lam = [jnp.where(valid, g, l) for g, l in zip(gc, lam, strict=True)]
+        acc = [a + jnp.where(valid, g, jnp.zeros_like(g)) for a, g in zip(acc, gP, strict=True)]
+        return lam, acc
+
+    def _segment_cts(self, ct_obs, s):
+        """Observation cotangents for the steps of segment ``s`` (zero off save points)."""
+        j = s * self.K + jnp.arange(self.K)
+        m = (j + 1) // self.save_every - 1
+        is_save = ((j + 1) % self.save_every == 0) & (j < self.n)
+        m = jnp.clip(m, 0, self.n_save - 1)
+        return j, jax.tree.map(lambda a: a[m], ct_obs), is_save
+
+    def adj_array(self, P, c0, ct_obs, ct_cN):
+        K, S = self.K, self.S
+
+        def advance(c, s):  # one segment, saving nothing
+            def one(c, i):
+                return self._masked_step(P, c, s * K + i), None
+
+            return jax.lax.scan(one, c, jnp.arange(K))[0], c
+
+        _, ckpts = jax.lax.scan(advance, c0, jnp.arange(S))
+
+        def segment(carry, s_ck):
+            lam, acc = carry
+            s, ck = s_ck
+
+            def one(c, i):
+                return self._masked_step(P, c, s * K + i), c
+
+            _, states = jax.lax.scan(one, ck, jnp.arange(K))
+            j, cts, is_save = self._segment_cts(ct_obs, s)
+
+            def back(carry, x):
+                lam, acc = carry
+                c, ct_o, sv, jj = x
+                return self._vjp_step((P, c, lam, acc, ct_o, sv, jj < self.n)), None
+
+            (lam, acc), _ = jax.lax.scan(back, (lam, acc), (states, cts, is_save, j), reverse=True)
+            return (lam, acc), None
+
+        acc0 = [jnp.zeros_like(p) for p in _floats(P)]
+        (lam, acc), _ = jax.lax.scan(
+            segment, (list(ct_cN), acc0), (jnp.arange(S), ckpts), reverse=True
+        )
+        return acc, lam
+
+    def adj_scalar(self, P, c0, ct_obs, ct_cN, cut=None):
+        K, S = self.K, self.S
+        j0 = jnp.zeros((), jnp.int32)
+        ex_step = (P, c0, j0)
+        mstep, _ = sc.flat_program(lambda x: (x[0], self._masked_step(*x), x[2] + 1), ex_step, cut)
+        nP = len(sc.split(P))
+        nc = len(sc.split(c0))
+
+        def advance_flat(fc, s, keep):
+            """K masked steps from the flat state ``fc``; the states before each if ``keep``."""
+            flat = sc.split(P) + fc + [jnp.asarray(s * K, jnp.int32)]
+
+            def one(f, _):
+                return mstep(f), (f[nP : nP + nc] if keep else None)
+
+            f, ys = jax.lax.scan(one, flat, None, length=K)
+            return f[nP : nP + nc], ys
+
+        def ckpt(fc, s):
+            return advance_flat(fc, s, False)[0], fc
+
+        _, ck_flat = jax.lax.scan(ckpt, sc.split(c0), jnp.arange(S))
+
+        lam0 = list(ct_cN)
+        acc0 = [jnp.zeros_like(p) for p in _floats(P)]
+        ct_o_ex = jax.tree.map(lambda a: a[0], ct_obs)
+        ex_back = (P, c0, lam0, acc0, ct_o_ex, jnp.array(True), jnp.array(True))
+        back_flat, _ = sc.flat_program(self._vjp_step, ex_back, cut)
+        n_lam = len(sc.split(lam0))
+        n_acc = len(sc.split(acc0))
+
+        def segment(carry, s_ck):
+            flam, facc = carry
+            s, fck = s_ck
+            _, states = advance_flat(list(fck), s, True)
+            j, cts, is_save = self._segment_cts(ct_obs, s)
+
+            def back(carry, x):
+                flam, facc = carry
+                fc, ct_o, sv, jj = x
+                flat = sc.split(P) + list(fc) + flam + facc + sc.split(ct_o) + [sv, jj < self.n]
+                out = back_flat(flat)
+                return (out[:n_lam], out[n_lam : n_lam + n_acc]), None
+
+            (flam, facc), _ = jax.lax.scan(
+                back, (flam, facc), (states, cts, is_save, j), reverse=True
+            )
+            return (flam, facc), None
+
+        (flam, facc), _ = jax.lax.scan(
+            segment, (sc.split(lam0), sc.split(acc0)), (jnp.arange(S), ck_flat), reverse=True
+        )
+        lam = sc.join(flam, jax.eval_shape(lambda: lam0))
+        acc = sc.join(facc, jax.eval_shape(lambda: acc0))
+        return acc, lam
+
+
+def _scalar_or_array(loop: Programs) -> Callable:
+    """The scalarized forward program, or the array one (with a warning) if it cannot be."""
+
+    def fwd(P, c0):
+        try:
+            return loop.fwd_scalar(P, c0)
+        except sc.ScalarizeError as e:
+            warnings.warn(f"{e}; running the array program instead", stacklevel=4)
+            return loop.fwd_array(P, c0)
+
+    return fwd

@@ -1,0 +1,27 @@
+"""The ``"frames"`` pass (attitude tangents as three numbers in the Jacobian programs) equals the
+reference.
+
+Under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian`` (`_cases`): the pass alone
+(with what it needs, `_cases.NEEDS`) against every pass off, on the steps of `_cases.ALONE`;
+``test_passes_together.py`` runs every pass together on the seed, LGVI, the quadrotor with
+its control held and that step. The plan (`so3jax.explain`) shows the pass acting, so the
+comparison is not of a program with itself.
+"""
+
+import _cases as C
+import pytest
+
+
+@pytest.mark.parametrize("case", C.ALONE)
+def test_alone_equals_reference(case):
+    C.assert_equal_to_reference(C.NEEDS["frames"] | {"frames"}, case)
+
+
+@pytest.mark.parametrize("case", ("seed", "lgvi"))
+def test_plan_shows_the_pass(case):
+    plan = C.plan(case, "grad", C.NEEDS["frames"] | {"frames"})
+    # two rotations (body and reference) in the carry; LGVI's tangent comes out dense
+    rotations = [e["rotations"] for e in plan.of("frames")]
+    assert rotations and (max(rotations) == 0 if case == "lgvi" else max(rotations) > 0), plan
+    off = C.plan(case, "grad", C.NEEDS["frames"])
+    assert off.passes == tuple(sorted(C.NEEDS["frames"]))

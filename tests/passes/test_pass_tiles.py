@@ -1,0 +1,24 @@
+"""The ``"tiles"`` pass (a batch of Jacobian programs in cache-sized tiles) equals the reference.
+
+Under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian`` (`_cases`): the pass alone
+(with what it needs, `_cases.NEEDS`) against every pass off, on the steps of `_cases.ALONE`;
+``test_passes_together.py`` runs every pass together on the seed, LGVI, the quadrotor with
+its control held and that step. The plan (`so3jax.explain`) shows the pass acting, so the
+comparison is not of a program with itself.
+"""
+
+import _cases as C
+import pytest
+
+
+@pytest.mark.parametrize("case", C.ALONE)
+def test_alone_equals_reference(case):
+    C.assert_equal_to_reference(C.NEEDS["tiles"] | {"tiles"}, case)
+
+
+@pytest.mark.parametrize("case", ("seed",))
+def test_plan_shows_the_pass(case):
+    plan = C.plan(case, "grad", C.NEEDS["tiles"] | {"tiles"})
+    assert any(e["program"] == "jacobian" and e["n"] == 2 for e in plan.of("tiles")), plan
+    off = C.plan(case, "grad", C.NEEDS["tiles"])
+    assert off.passes == tuple(sorted(C.NEEDS["tiles"]))

@@ -1,0 +1,25 @@
+"""The ``"unroll"`` pass (small reductions written out term by term, so derivative loops can be
+hoisted) equals the reference.
+
+Under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian`` (`_cases`): the pass alone
+(with what it needs, `_cases.NEEDS`) against every pass off, on the steps of `_cases.ALONE`;
+``test_passes_together.py`` runs every pass together on the seed, LGVI, the quadrotor with
+its control held and that step. The plan (`so3jax.explain`) shows the pass acting, so the
+comparison is not of a program with itself.
+"""
+
+import _cases as C
+import pytest
+
+
+@pytest.mark.parametrize("case", C.ALONE)
+def test_alone_equals_reference(case):
+    C.assert_equal_to_reference(C.NEEDS["unroll"] | {"unroll"}, case)
+
+
+@pytest.mark.parametrize("case", ("seed",))
+def test_plan_shows_the_pass(case):
+    plan = C.plan(case, "grad", C.NEEDS["unroll"] | {"unroll"})
+    assert any(e["hoisted"] and e.get("unrolled") for e in plan.of("hoisting")), plan
+    off = C.plan(case, "grad", C.NEEDS["unroll"])
+    assert off.passes == tuple(sorted(C.NEEDS["unroll"]))

@@ -1,0 +1,17 @@
+"""Every pass of the engine's policy together equals the reference.
+
+Under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian``, for the seed, LGVI, the
+quadrotor with its control held and a step containing ``lax.cond`` (`_cases`): the passes
+of the default policy (all of them, or those ``SO3JAX_PASSES`` names) against every pass
+off. Each pass alone: ``test_pass_<name>.py``.
+"""
+
+import _cases as C
+import pytest
+
+from so3jax._engine import policy
+
+
+@pytest.mark.parametrize("case", C.CASES)
+def test_default_passes_equal_reference(case):
+    C.assert_equal_to_reference(policy.DEFAULT.passes, case)
