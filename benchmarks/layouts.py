@@ -1,7 +1,7 @@
 """Array against scalarized program under ``vmap``, on whatever backend runs it.
 
 The execution engine (`so3jax._engine.policy.batched_layout`) picks a layout per batch
-size; the table was measured on the 2-core CPU (`GPU_LAYOUT` holds what differs on
+size; the table was measured on the 2-core CPU (``gpu_layout`` holds what differs on
 a GPU). This script runs the same calls with the engine's choice ("default") and
 with the array program forced ("array": every entry of both tables set to never),
 side by side in one process:
@@ -19,7 +19,7 @@ Writes ``results/layouts[-check][-<backend>][-quick].json`` (a ``.partial.json``
 
     python benchmarks/layouts.py            # GPU sizes (B up to 2^20)
     python benchmarks/layouts.py --quick    # smoke run: small batches
-    python benchmarks/layouts.py --check    # only the rows around GPU_LAYOUT's cut (4096)
+    python benchmarks/layouts.py --check    # only the rows around gpu_layout's cut (4096)
     python benchmarks/layouts.py --derivatives 4096   # only the derivative rows, at 4096 runs
 """
 

@@ -96,6 +96,15 @@ def _scene_name(text: str) -> str:
     return text
 
 
+def _animation_path(text: str) -> Path:
+    from ._plot_animate import check_path
+
+    try:
+        return check_path(text)
+    except (ValueError, RuntimeError) as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     scenes = "\n".join(f"  {k:<12} {d} (default {T:g} s)" for k, (d, T) in SCENES.items())
     parser = _Parser(
@@ -163,6 +172,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--no-plots", action="store_true", help="skip the figures")
+    parser.add_argument(
+        "--animate",
+        type=_animation_path,
+        default=None,
+        metavar="PATH",
+        help="also write an animation of the run to PATH (.gif, or .mp4 with ffmpeg)",
+    )
     return parser
 
 
@@ -504,6 +520,14 @@ def main(argv=None) -> int:
             plt.close(fig)
             files.append(str(out / name))
         print(f"  {time.perf_counter() - tic:.2f} s")
+    if args.animate is not None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        from . import plot
+
+        print("animating ...", flush=True)
+        files.append(str(plot.animate(traj, args.animate, scene=scene)))
 
     summary.update(
         scene=args.scene,

@@ -620,7 +620,7 @@ def tune(
     - `per_axis`: tune 3-vectors of gains (one per body axis) instead of scalars.
     - `checkpoint_every`: as in `rollout_cost`.
     - `gradient`: ``"auto"`` (default: forward mode through at most
-      `FORWARD_MODE_MAX` tuned scalars, reverse mode beyond), ``"reverse"``
+      `FORWARD_MODE_MAX` (8) tuned scalars, reverse mode beyond), ``"reverse"``
       (`jax.grad`) or ``"forward"`` (`jax.jacfwd`, one tangent per scalar,
       constant memory). With 2 or 6 gains both run the engine's one-pass
       Jacobian at about the same cost; through a dozen gains of one run
@@ -759,10 +759,11 @@ def tune(
 
 
 #: `tune`'s ``gradient="auto"`` takes forward mode through at most this many tuned
-#: scalars. On one run forward mode is faster than reverse through DiffTune's 12
-#: quadrotor gains and level through the seed's 46 scene floats; a backward pass pays
-#: only with many more parameters than that.
-FORWARD_MODE_MAX = 32
+#: scalars: the engine's ``forward_jacobian_max``, through which both modes are the same
+#: one-pass Jacobian. Through more, reverse mode is the engine's discrete adjoint
+#: (`so3jax._engine.derivatives.CheckpointedAdjoint`), several times faster than forward
+#: mode through DiffTune's 12 quadrotor gains (``benchmarks/difftune.py``).
+FORWARD_MODE_MAX = 8
 
 _GRADIENTS = ("auto", "reverse", "forward")
 

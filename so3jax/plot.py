@@ -4,6 +4,7 @@ Every function takes a `Trajectory` (one run, not a batch) and returns a
 `matplotlib.figure.Figure`; the single-panel ones draw into ``ax`` when given.
 Scripts that only write files should select the Agg backend first
 (``matplotlib.use("Agg")``), as ``python -m so3jax`` does.
+`animate` writes a run as a GIF or an MP4 file instead and returns its path.
 
 Quantities:
 
@@ -25,8 +26,9 @@ from __future__ import annotations
 
 import numpy as np
 
-# Figures of a quadrotor run, and of a `SweepResult` and a `TuneResult`, live in
-# their own modules.
+# Figures of a quadrotor run, and of a `SweepResult` and a `TuneResult`, and the
+# animation of a run live in their own modules.
+from ._plot_animate import animate as animate
 from ._plot_log import log_floor, log_line, peak
 from ._plot_quadrotor import quadrotor_figure as quadrotor_figure, quadrotor_path as quadrotor_path
 from ._plot_sweep import (
@@ -43,6 +45,7 @@ __all__ = [
     "tune_figure",
     "quadrotor_figure",
     "quadrotor_path",
+    "animate",
     "attitude_error",
     "angular_velocity_error",
     "torque",

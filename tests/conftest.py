@@ -67,6 +67,11 @@ jax.config.update("jax_enable_x64", True)
 #: Unlisted modules go last.
 _MODULE_SECONDS = {
     "test_engine.py": 139,
+    "test_passes_together.py": 62,
+    "test_quadrotor_rotors.py": 40,
+    "test_pass_frames.py": 24,
+    "test_scene_limits.py": 19,
+    "test_policy.py": 15,
     "test_benchmarks.py": 116,
     "test_notebooks.py": 100,
     "test_adaptive.py": 95,

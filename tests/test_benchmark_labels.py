@@ -97,7 +97,7 @@ def test_unrolled_step_loops_change_the_program_not_the_results():
     """`unroll.unrolled(u)` traces the engine's step loops unrolled (a larger lowered
     program, also after a trace with the default) and leaves the run as it was. (Not
     differentiated here: a gradient through the unrolled loop compiles for 12 s, and
-    `SCAN_UNROLL` is a benchmark setting, 1 by default.)"""
+    ``scan_unroll`` is a benchmark setting, 1 by default.)"""
     import jax
     import numpy as np
 

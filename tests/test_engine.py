@@ -289,7 +289,7 @@ def _toy_times(P, program):
 def test_derivatives_of_a_jitted_batch_through_more_than_8_scalars():
     """``vmap`` batches a jitted run's jaxpr, the ``custom_jvp`` function alone; ``jvp``
     then runs the rule on the batched program. The rule through more than
-    `FORWARD_JACOBIAN_MAX` scalars (JAX's ``jvp`` of the checkpointed program) must
+    ``forward_jacobian_max`` scalars (JAX's ``jvp`` of the checkpointed program) must
     batch its outputs as the function does: it did not batch the times, and ``jacfwd``
     and ``grad`` of such a batch (the quadrotor's 12 gains) raised "Cannot concatenate
     arrays with different numbers of dimensions"."""
@@ -382,7 +382,7 @@ def test_second_derivatives_equal_autodiff(n, monkeypatch):
             ),
             "jacfwd(hessian(mean jitted vmap 40))": J(jax.jacfwd(jax.hessian(big)))(jnp.ones(n)),
             "jacrev(jacrev(mean jitted vmap 40))": J(jax.jacrev(jax.jacrev(big)))(jnp.ones(n)),
-            # 20 runs: the Jacobian program scalarized, its jvp (BATCHED_LAYOUT["jvp"]) not
+            # 20 runs: the Jacobian program scalarized, its jvp (batched_layout["jvp"]) not
             "hessian(mean jitted vmap 20)": J(jax.hessian(mid))(jnp.ones(n)),
             "hessian": J(jax.hessian(f))(p),
             "jacrev(jacrev)": J(jax.jacrev(jax.jacrev(f)))(p),
@@ -709,7 +709,7 @@ def test_scalarized_tangent_program_for_large_batches():
     hlo = jf.lower(K0).as_text()
     assert f"tensor<2x{B}xf64>" in hlo and f"tensor<{B}x2xf64>" not in hlo
     # the Hessian's jvp of that program too (its values: test_second_derivatives_...),
-    # where it runs scalarized (from BATCHED_LAYOUT["jvp"]'s runs; here made B's)
+    # where it runs scalarized (from batched_layout["jvp"]'s runs; here made B's)
     layouts = dict(_engine.policy.current().batched_layout)
     with _engine.policy.using(batched_layout={**layouts, "jvp": (B, B)}):
         hlo = jax.jit(jax.hessian(cost("auto"))).lower(K0).as_text()
@@ -717,7 +717,7 @@ def test_scalarized_tangent_program_for_large_batches():
 
 
 def test_scalarized_jacobian_cuts_what_its_columns_consume(engine_policy):
-    """From `COLUMN_CUTS_FROM` runs the scalarized Jacobian program also cuts the values
+    """From ``column_cuts_from`` runs the scalarized Jacobian program also cuts the values
     its tangent columns consume (the policy's ``column_cut_cone``): more cuts in the
     program, and ``grad`` still equals JAX's autodiff (here from 16 runs, at 16)."""
     B = _engine.policy.batched_layout("jacobian")[1]
@@ -771,27 +771,6 @@ def test_batch_tiles_policy(monkeypatch):
         assert size % 8 == 0 and n * size >= B > (n - 1) * size and 40 <= size <= 96
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     assert _engine.passes.tiles.batch_tiles("jacobian", 256, 2) == (1, 256)
-
-
-def test_tiled_jacobian_equals_autodiff(engine_policy):
-    """A batch whose Jacobian program runs in tiles (`_engine.passes.tiles._in_tiles`; here 3
-    tiles of 17
-    over 50 runs, the last padded with a copy of the last run): ``grad``, ``jacfwd`` and
-    ``jax.hessian`` equal JAX's autodiff, and the tiles are in the program (a loop over 3
-    tiles whose tangents are ``(2, 17)`` arrays)."""
-    engine_policy(tile_values=48, tile_multiple=1)  # 16 runs a tile for 2 columns
-    B = 50
-    assert _engine.passes.tiles.batch_tiles("jacobian", B, 2) == (3, 17)
-    cost = _seed_mean_cost(jax.random.PRNGKey(8), B, N - 1)
-    ref = _jit_grad(cost("autodiff"))(K0)
-    f = _jit_grad(cost("auto"))
-    hlo = f.lower(K0).as_text()
-    assert "tensor<2x17xf64>" in hlo and f"tensor<2x{B}xf64>" not in hlo
-    assert _rel(f(K0), ref) < 1e-10
-    assert _rel(jax.jit(jax.jacfwd(cost("auto")))(K0), ref) < 1e-10
-    H = jax.jit(jax.hessian(cost("auto")))(K0)
-    H_ref = jax.jit(jax.hessian(cost("autodiff")))(K0)
-    assert _rel(H, H_ref) < 1e-10
 
 
 def test_scalarized_jacobian_of_trajectories():
@@ -965,7 +944,7 @@ def test_dependence_walk():
 
 
 def test_gpu_layout_table(monkeypatch):
-    """On a GPU `batched_layout` takes `GPU_LAYOUT`'s entries: a batch of 64 runs (scalarized
+    """On a GPU `batched_layout` takes ``gpu_layout``'s entries: a batch of 64 runs (scalarized
     on the CPU) traces the array program there, 32768 runs the scalarized one; the one-pass
     Jacobian of ``jacfwd`` over 64 runs is the array program there too (scalarized from
     16384 runs); the other programs keep the CPU's table. (That both
@@ -1131,12 +1110,12 @@ def _hoisted_in(text: str) -> bool:
 #: Tests that force hoisting on: only on the jaxlib releases the suite has passed on
 #: with it (`_engine._jax.TESTED`); elsewhere the engine leaves it off.
 needs_hoisting = pytest.mark.skipif(
-    not _engine.policy.hoisting_verified(), reason="hoisting is off on this jaxlib (HOIST_VERIFIED)"
+    not _engine.policy.hoisting_verified(), reason="hoisting is off on this jaxlib (_jax.TESTED)"
 )
 
 
 @needs_hoisting
-@pytest.mark.parametrize("runs", [1, 40])
+@pytest.mark.parametrize("runs", [1])  # (a batch: tests/passes/test_pass_hoist.py)
 def test_hoisted_loops_equal_the_default_runtime(runs, engine_policy):
     """Loops compiled as one kernel (`_engine.passes.hoist._hoisted`) give XLA's default runtime's
     numbers: a single run (array program) and 40 runs (scalarized), forward pass,
@@ -1203,7 +1182,7 @@ def test_hoisted_call_returns_its_inputs(engine_policy):
 def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
     """No hoisting for a loop with a dot (XLA's older emitter refuses it), nor with a
     reduction over more than 1024 elements, nor for one whose batch exceeds
-    `HOIST_MAX_BYTES`; closed-over constants larger than the older
+    ``hoist_max_bytes``; closed-over constants larger than the older
     emitter takes (12 kB here) reach a hoisted loop as arguments, with the same numbers."""
 
     def step(P, c):
@@ -1225,9 +1204,9 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
     text = _compiled_text(jax.vmap(lambda b: loop(elementwise, (0.5, b), jnp.ones(3))), bs)
     assert _hoisted_in(text)
 
-    # A reduction over more than HOIST_MAX_REDUCED elements of the batch: XLA would make
+    # A reduction over more than hoist_max_reduced elements of the batch: XLA would make
     # it a kernel the older emitter lacks ("Fusion kind not implemented on CPU"). Over at
-    # most UNROLL_MAX_TERMS terms a run it is written out and the loop hoisted (a 6x6
+    # most unroll_max_terms terms a run it is written out and the loop hoisted (a 6x6
     # product as _so3._mm forms it: 216 elements a run, 1080 over 5 runs); over more
     # terms (a sum of 64 here) the loop is not hoisted past 1024 elements (the
     # array layout's batches: the scalarized programs have no reductions).
@@ -1284,7 +1263,7 @@ def _reductions(jaxpr) -> list:
 def test_small_reductions_written_out_term_by_term():
     """`_engine.passes.unroll._unrolled` (what lets derivative programs' loops be hoisted)
     writes out
-    sums, products, maxima, minima, all and any over at most `UNROLL_MAX_TERMS` terms, in
+    sums, products, maxima, minima, all and any over at most ``unroll_max_terms`` terms, in
     nested loops and branches too, with the same numbers; a larger one stays."""
     rng = np.random.default_rng(0)
     A, B = jnp.asarray(rng.normal(size=(3, 3))), jnp.asarray(rng.normal(size=(3, 3)))

@@ -1,7 +1,7 @@
 """`so3jax.explain`: the engine's documented plan for each kind of call (`so3jax._engine`:
 the array program for one run and small batches, the scalarized one from
-`BATCHED_LAYOUT`'s threshold; the one-pass Jacobian through at most
-`FORWARD_JACOBIAN_MAX` scalars, JAX's jvp of the checkpointed program through more).
+``batched_layout``'s threshold; the one-pass Jacobian through at most
+``forward_jacobian_max`` scalars, JAX's jvp of the checkpointed program through more).
 Tracing only: nothing is compiled or run."""
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def test_jacfwd_is_one_pass_too():
     assert _layouts(plan, "jacobian")[-1] == (2, "array")
 
 
-def test_grad_through_twelve_gains_is_the_checkpointed_jvp():
+def test_grad_through_twelve_gains_is_the_discrete_adjoint():
     quad = so3jax.scenes.quadrotor_circle()
 
     def loss(gains):
@@ -77,7 +77,7 @@ def test_grad_through_twelve_gains_is_the_checkpointed_jvp():
     n = sum(g.size for g in jax.tree.leaves(gains))
     assert n == 12 > _engine.policy.current().forward_jacobian_max
     plan = so3jax.explain(jax.grad(loss), gains)
-    assert _strategies(plan) == ["checkpointed jvp"]
+    assert _strategies(plan) == ["checkpointed jvp, discrete adjoint"]
     # the 12 gains and what the scene derives from them (the held control at t = 0)
     assert plan.of("derivative")[0]["scalars"] >= 12
 

@@ -186,7 +186,8 @@ def _batched_seed_cost(method, dtype, program, seed: int, traj_cost):
     return f
 
 
-@pytest.mark.parametrize("method", [s.RKMK4(coords="cayley"), s.LGVI()], ids=str)
+# (LGVI, whose rotation tangent comes out dense: tests/passes/test_pass_frames.py)
+@pytest.mark.parametrize("method", [s.RKMK4(coords="cayley")], ids=str)
 def test_scalarized_jacobian_with_three_number_tangents(method, monkeypatch):
     """The scalarized one-pass Jacobian (16 runs), whose attitude tangents are three
     numbers, equals JAX's autodiff (``jacfwd`` through the gains, a cost on the saved

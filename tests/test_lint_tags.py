@@ -26,7 +26,7 @@ TAG = "S" + "46"  # a work-session label
 DATE = "-".join(["2026", "11", "25"])  # an ISO date
 #: Real files of each kind the lint reads: Python, Markdown, a notebook, benchmark output.
 COPIED = [
-    "so3jax/_frames.py",
+    "so3jax/_engine/passes/frames.py",
     "docs/conventions.md",
     "notebooks/01_so3_in_practice.ipynb",
     "benchmarks/results/stability.json",
@@ -55,19 +55,19 @@ def test_the_repository_is_clean():
 
 def test_the_copy_is_clean_and_a_planted_tag_fails(copy):
     assert _run(copy).returncode == 0, _run(copy).stdout
-    path = copy / "so3jax" / "_frames.py"
+    path = copy / "so3jax" / "_engine" / "passes" / "frames.py"
     lines = path.read_text(encoding="utf-8").splitlines()
     lines.insert(2, f"The dense rule took about 110 operations a column ({TAG}).")
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     result = _run(copy)
     assert result.returncode == 1
-    assert "so3jax/_frames.py:3: session tag: The dense rule" in result.stdout
+    assert "so3jax/_engine/passes/frames.py:3: session tag: The dense rule" in result.stdout
 
 
 @pytest.mark.parametrize(
     "rel, text",
     [
-        ("so3jax/_frames.py", f"# measured on a 2-core CPU ({DATE}): 1.2x faster\n"),
+        ("so3jax/_engine/passes/frames.py", f"# measured on a 2-core CPU ({DATE}): 1.2x faster\n"),
         ("docs/conventions.md", f"\nThe sweep ran at 2e6 body-steps/s ({DATE}).\n"),
     ],
 )

@@ -400,14 +400,14 @@ def test_values_consumed_by_batched_columns_are_cut():
     from so3jax._engine.passes.scalarize import flat_program
     from so3jax._engine.policy import current
 
-    COLUMN_CUT_CONE = current().column_cut_cone
+    column_cut_cone = current().column_cut_cone
 
     def fn(x):  # x[:2] primal, x[2] a tangent column
         p = x[0] * x[1] + x[0] - x[1] * x[1] + 0.5 * x[0]  # a cone of 6 operations, one use
         q = x[0] + 1.0  # one operation
         return jnp.stack([p * x[2], q * x[2], x[0] - x[1]])
 
-    assert 1 < COLUMN_CUT_CONE <= 6
+    assert 1 < column_cut_cone <= 6
     ex = jnp.array([0.3, -0.7, 1.1])
     xs = jax.random.normal(jax.random.PRNGKey(1), (64, 3))
     cols = jax.random.normal(jax.random.PRNGKey(2), (2, 64))

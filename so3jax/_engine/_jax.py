@@ -6,7 +6,7 @@ The engine's fast paths lean on parts of JAX that are not its stable API:
   CPU compiler builds it as one kernel (`so3jax._engine._hoisted`);
 - `jax._src.interpreters.batching.BatchTracer`, to tell whether a value closed over
   by a program is batched by an enclosing ``vmap`` (`batched`);
-- the rule tables for a primitive of so3jax's own (`so3jax._linear_call`, which
+- the rule tables for a primitive of so3jax's own (`so3jax._engine.linear_call`, which
   checks its own names).
 
 `TESTED` lists the JAX releases the test suite passes on with them. On another

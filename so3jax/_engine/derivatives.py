@@ -2,19 +2,23 @@
 
 A run (`so3jax._engine.run`) is one ``jax.custom_jvp`` whose rule asks `choose` for a
 `Strategy` and hands it the loop, the forward program and the primals and tangents.
-There are three, all exact to round-off against each other:
+There are four, all exact to round-off against each other:
 
 - `Autodiff`: JAX's own ``jvp`` of the checkpointed array program
   (`so3jax._engine.loop.Loop.fwd_checkpointed`), which JAX transposes for reverse mode
-  with memory ``~ sqrt(n_steps)``. The reference, and the strategy through more than
-  the policy's ``forward_jacobian_max`` scalars.
+  with memory ``~ sqrt(n_steps)``. The reference (``program="autodiff"``, ``"array"``,
+  ``"scalar"``).
 - `OnePassJacobian`: through at most ``forward_jacobian_max`` scalars, the run's value
   and its Jacobian in one pass (the primal once, the unit tangents as columns over it);
   the tangent is the Jacobian times the input tangent, and ``grad`` is JAX's transpose
   of that contraction, with nothing stored per step.
 - `DiscreteAdjoint` (``program="adjoint"``): the engine's tangent program in forward
-  mode and a backward scan of ``jax.vjp`` of one step in reverse mode, whatever the
-  number of inputs, behind so3jax's own ``linear_call``. First derivatives only.
+  mode and its discrete adjoint (a backward scan over checkpointed segments) in reverse
+  mode, whatever the number of inputs, behind so3jax's own ``linear_call``. First
+  derivatives only.
+- `CheckpointedAdjoint`: through more than the policy's ``forward_jacobian_max``
+  scalars, `Autodiff`'s ``jvp`` in forward mode and for second derivatives, and
+  `DiscreteAdjoint`'s adjoint in reverse mode.
 
 Programs outside the fixed-step engine (`so3jax.simulate` with tolerances, whose loop
 is a ``while_loop``) use the same pieces: `Flagged` splits a rule's inputs into the
@@ -46,7 +50,10 @@ from .policy import current
 from .programs import Programs
 from .tangents import (
     _HAVE_LINEAR_CALL_BATCHING,
+    _float_tangent,
     _jvp_through,
+    _linear_tangent,
+    _with_float0,
     first_order_only,
     forward_differentiated,
 )
@@ -69,6 +76,7 @@ __all__ = [
     "Autodiff",
     "OnePassJacobian",
     "DiscreteAdjoint",
+    "CheckpointedAdjoint",
     "choose",
     "differentiated",
     "Flagged",
@@ -161,27 +169,109 @@ class DiscreteAdjoint(Strategy):
         mP, mc = _tangent_masks(loop.step, P, c0, nz[: len(pf)], nz[len(pf) :])
         _plan.note("derivative", strategy=self.name, scalars=_size(lin), why='program="adjoint"')
         out = fwd(P, c0)
-        tan = _dual(
-            functools.partial(loop.tan_array, mP, mc),
-            functools.partial(loop.tan_scalar, mP, mc),
-            "tangent",
-        )
-        adj = _dual(loop.adj_array, loop.adj_scalar, "adjoint")
+        avals = jax.eval_shape(lambda: out)
+        tan = _tangent_program(loop, mP, mc)
 
         def tangent(res, lin):
             P, c0 = res
             dys, dcN = tan(P, c0, *_masked_tangents(nz, lin, mP, mc, pf, cf))
             return dys, _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(out[1])])
 
-        def transpose(res, cts):
+        def transpose(res, cts):  # ``None``: a symbolic zero (`linear_call`'s symbolic_zeros)
             P, c0 = res
-            ct_ys, ct_cN = cts
-            gP, gc = adj(P, c0, ct_ys, ct_cN)
-            return [g for g, z in zip(list(gP) + list(gc), nz, strict=True) if z]
+            ct_ys = jax.tree.leaves(cts[0], is_leaf=lambda x: x is None)
+            gP, gc = _adjoint_transpose(loop, mP, mc, P, c0, avals, ct_ys, list(cts[1]))
+            return [g for g, z in zip(gP + gc, nz, strict=True) if z]
 
         res = first_order_only(_ADJOINT_FIRST_ORDER, (P, c0))
-        dys, dcNf = linear_call(tangent, transpose, res, lin)
+        dys, dcNf = linear_call(tangent, transpose, res, lin, symbolic_zeros=True)
         return out, (dys, _tangent_tree(out[1], dcNf))
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckpointedAdjoint(Strategy):
+    """Through more than the policy's ``forward_jacobian_max`` scalars: the value from the
+    run's forward program, the tangent from JAX's ``jvp`` of the checkpointed array program
+    in forward mode and the engine's discrete adjoint in reverse mode; second derivatives
+    from JAX's ``jvp`` of the checkpointed array program.
+
+    The tangent is a ``linear_call`` (`_linear_tangent`) whose program is JAX's ``jvp`` of
+    the checkpointed program and whose transpose is the discrete adjoint
+    (`Programs.adj_array` / ``adj_scalar``, `_adjoint_transpose`): each of its
+    loops one kernel on a CPU (the ``"hoist"`` pass), where JAX's transpose of
+    `Autodiff`'s ``jvp`` runs XLA's loops of many kernels. Observations a cost does not
+    use are left out of the backward pass, as JAX's transpose leaves them out. The
+    ``linear_call``'s own derivative (``jax.hessian``, ``jvp`` of ``grad``) is JAX's
+    ``jvp`` of the checkpointed program (`_linear_tangent`'s rule). ``why``: for
+    `so3jax.explain`.
+    """
+
+    why: str = "more than forward_jacobian_max scalars"
+    name = "checkpointed jvp, discrete adjoint"
+
+    def jvp(self, loop, fwd, primals, tangents):
+        p_leaves, treedef = jax.tree.flatten(primals)
+        t_leaves, nz = _tangent_leaves(tangents)
+        n = sum(math.prod(jnp.shape(t)) for t, z in zip(t_leaves, nz, strict=True) if z)
+        _plan.note("derivative", strategy=self.name, scalars=n, why=self.why)
+        real = list(nz)
+        t_leaves, nz = _settle_carry_tangents(loop.step, primals, p_leaves, t_leaves, nz)
+        P, c0 = primals
+        out = fwd(P, c0)
+        out_nz = [_is_float(o) for o in jax.tree.leaves(out)]
+        floats = [_is_float(x) for x in p_leaves]
+        nz = [z and f for z, f in zip(nz, floats, strict=True)]
+        n_P = len(jax.tree.leaves(P))
+        mP, mc = _tangent_masks(
+            loop.step, P, c0, _pick(floats[:n_P], nz[:n_P]), _pick(floats[n_P:], nz[n_P:])
+        )
+        n_ys = len(jax.tree.leaves(out[0]))
+        avals = jax.eval_shape(lambda: out)
+
+        def adjoint(res, cts):  # cts: the float outputs' cotangents, None for symbolic zeros
+            P, c0 = jax.tree.unflatten(treedef, res[1])
+            gP, gc = _adjoint_transpose(loop, mP, mc, P, c0, avals, cts[:n_ys], cts[n_ys:])
+            return _pick(nz, _fill(floats, gP + gc, [None] * len(floats)))
+
+        # Forward mode (``jacfwd``, `so3jax.tune`'s default through a dozen gains) is JAX's
+        # jvp of the checkpointed program: the engine's tangent program through this many
+        # scalars ran about as fast and compiled several times longer.
+        plain = _float_tangent(loop.fwd_checkpointed, treedef, nz, out_nz)
+        xs, ts = _pick(nz, p_leaves), _pick(nz, t_leaves)
+        tan = _linear_tangent(plain, plain, xs, p_leaves, ts, _pick(nz, real), adjoint=adjoint)
+        return out, _with_float0(out, out_nz, tan)
+
+
+def _tangent_program(loop: Programs, mP: tuple, mc: tuple) -> Callable:
+    """The tangent program of ``loop`` for the masks ``mP``, ``mc`` (`_tangent_masks`):
+    ``(P, c0, dP, dc0) -> (dys, dcN)``, in either layout (`_dual`)."""
+    return _dual(
+        functools.partial(loop.tan_array, mP, mc),
+        functools.partial(loop.tan_scalar, mP, mc),
+        "tangent",
+    )
+
+
+def _adjoint_transpose(loop: Programs, mP, mc, P, c0, avals, ct_ys: list, ct_cN: list):
+    """``(gP, gc)``: the discrete adjoint (`Programs.adj_array`) at the cotangents ``ct_ys``
+    (one per observation leaf) and ``ct_cN`` (one per float leaf of the final carry),
+    where ``None`` is a symbolic zero: an observation the cost does not use is left out
+    of the backward pass. ``avals``: the shapes of the run's ``(ys, cN)``."""
+    ys_avals, ys_tree = jax.tree.flatten(avals[0])
+    keep = tuple(c is not None for c in ct_ys)
+    kept = [c for c in ct_ys if c is not None]
+    ct_cN = [
+        jnp.zeros(a.shape, a.dtype) if c is None else c
+        for c, a in zip(ct_cN, _floats(avals[1]), strict=True)
+    ]
+
+    def scalar(P, c0, kept, ct_cN, cut=None):  # every observation's cotangent
+        full = _fill(keep, kept, [jnp.zeros(a.shape, a.dtype) for a in ys_avals])
+        return loop.adj_scalar(P, c0, jax.tree.unflatten(ys_tree, full), ct_cN, cut)
+
+    adj = _dual(functools.partial(loop.adj_array, mP, mc, keep), scalar, "adjoint")
+    gP, gc = adj(P, c0, kept, ct_cN)
+    return list(gP), list(gc)
 
 
 def _nonzero(primals, tangents) -> tuple[list, list]:
@@ -199,7 +289,7 @@ def choose(program: str, n_scalars: int) -> Strategy:
     """The strategy for a run of ``program`` differentiated through ``n_scalars`` scalars.
 
     ``"auto"``: `OnePassJacobian` through at most the policy's ``forward_jacobian_max``
-    scalars, else `Autodiff`; ``"adjoint"``: `DiscreteAdjoint`; ``"array"``, ``"scalar"``
+    scalars, else `CheckpointedAdjoint`; ``"adjoint"``: `DiscreteAdjoint`; ``"array"``, ``"scalar"``
     (benchmarks) and a JAX release without so3jax's ``linear_call``: `Autodiff`.
     """
     if program not in ("auto", "adjoint") or not _HAVE_LINEAR_CALL_BATCHING:
@@ -209,7 +299,7 @@ def choose(program: str, n_scalars: int) -> Strategy:
     limit = current().forward_jacobian_max
     if n_scalars <= limit:
         return OnePassJacobian()
-    return Autodiff(why=f"more than forward_jacobian_max = {limit} scalars")
+    return CheckpointedAdjoint(why=f"more than forward_jacobian_max = {limit} scalars")
 
 
 def differentiated(loop: Programs, fwd: Callable, program: str) -> Callable:
@@ -244,7 +334,7 @@ def _jacobian_jvp(loop: Programs, P, c0, nz: list, lin: list, mP: tuple, mc: tup
     more (the policy's ``batched_layout``).
 
     ``elements`` (`_tangent_masks`) and the frame rules decide, per observation, what
-    the loop saves (`_Loop.obs_kinds`): nothing where the tangent is zero (the
+    the loop saves (`Programs.obs_kinds`): nothing where the tangent is zero (the
     reference attitude of a gain's derivative), three numbers a column for a rotation.
     A seed trajectory's columns take 15 numbers a point instead of 25.
     """
@@ -308,7 +398,7 @@ def _settle_carry_tangents(step, primals, p_leaves, t_leaves, nz) -> tuple[list,
 
 
 def _settle_jacobian_tangents(loop: Programs, mP, mc, primals, p_leaves, t_leaves, nz):
-    """`_settle_carry_tangents` for the Jacobian program (`_Loop.jac_array`), whose
+    """`_settle_carry_tangents` for the Jacobian program (`Programs.jac_array`), whose
     arguments ``(P, c0, dP, dc0)`` are a loop's parameters ``(P, dP)`` and its carry
     ``(c0, dc0)``: the carry tangents of second derivatives (`_dual_jvp`)."""
     sizes = [len(jax.tree.leaves(x)) for x in primals]

@@ -106,7 +106,7 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     """`_dual`'s derivative (second derivatives of a run: its rule's programs differentiated).
 
     For the forward, tangent and Jacobian programs, the value is a `_dual` of the same
-    programs (scalarized under a ``vmap`` of 16 runs or more, `BATCHED_LAYOUT`) and the
+    programs (scalarized under a ``vmap`` of 16 runs or more, ``batched_layout``) and the
     tangent a ``linear_call`` (`_linear_tangent`) whose program is the ``jvp`` of the
     program `_dual` would run, itself a `_dual` (``"jvp"``): a batch's second
     derivatives run the batch's program, not the array program's. Integer outputs (a
@@ -114,7 +114,7 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     programs, and the ``"jvp"`` programs themselves (third derivatives): JAX's ``jvp``
     of the array program (`_array_jvp`).
 
-    The ``linear_call``'s batching rule (`so3jax._linear_call`) leaves a call with
+    The ``linear_call``'s batching rule (`so3jax._engine.linear_call`) leaves a call with
     nothing batched unbatched: JAX calls it under every ``vmap`` in scope (the inner
     ``jacfwd``'s basis of ``jacfwd`` of ``jacfwd`` too), and batching its outputs there
     would batch this rule's value with its tangent.
@@ -208,7 +208,9 @@ class _Traced:
             params = e.primitive.get_bind_params(e.params)
             with e.ctx.manager:
                 if e.primitive.name == "scan":
-                    outs = _hoisted(functools.partial(e.primitive.bind, **params), *ins)
+                    xs_from = params["num_consts"] + params["num_carry"]
+                    loop = functools.partial(e.primitive.bind, **params)
+                    outs = _hoisted(loop, *ins, xs_from=xs_from)
                 else:
                     outs = e.primitive.bind(*ins, **params)
             outs = outs if e.primitive.multiple_results else [outs]

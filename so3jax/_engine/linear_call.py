@@ -7,9 +7,10 @@
 batching rule, so ``vmap`` of a gradient through it raises. Rather than add a rule to
 JAX's tables for JAX's primitive (which every program in the process would then run),
 so3jax defines its own primitive, ``so3jax_linear_call``, and gives it the rules it
-needs: evaluation and lowering (the callee's jaxpr), JVP (linear in ``lin``; residuals
-are not differentiated), transpose (the call of ``fun_transpose``), and batching (the
-callee and the transpose vmapped, linear inputs batched in front). This is the pattern
+needs: evaluation and lowering (the callee's jaxpr), JVP (linear in ``lin``; moved
+residuals, a second derivative, get JAX's ``jvp`` of the callee), transpose (the call
+of ``fun_transpose``), and batching (the callee and the transpose vmapped, linear
+inputs batched in front). This is the pattern
 of equinox's `filter_primitive_*` helpers. Nothing here touches a primitive so3jax did
 not define.
 
@@ -49,7 +50,14 @@ except ImportError:  # pragma: no cover - JAX moved them
 __all__ = ["AVAILABLE", "linear_call"]
 
 
-def linear_call(fun: Callable, fun_transpose: Callable, residual_args, linear_args):
+def linear_call(
+    fun: Callable,
+    fun_transpose: Callable,
+    residual_args,
+    linear_args,
+    symbolic_zeros=False,
+    differentiable: Callable | None = None,
+):
     """``fun(residual_args, linear_args)``, linear in ``linear_args``, transposed by
     ``fun_transpose(residual_args, cotangents)``; batches under ``vmap``.
 
@@ -60,6 +68,13 @@ def linear_call(fun: Callable, fun_transpose: Callable, residual_args, linear_ar
       ``lin_ct`` as ``lin``. Traced when a transpose is needed (lazily, as JAX's
       ``linear_call`` does): it should get what it needs from ``res``.
     - `residual_args`, `linear_args`: pytrees of arrays.
+    - `symbolic_zeros`: if true, ``fun_transpose`` gets ``None`` for each cotangent
+      leaf that is a symbolic zero (an output the differentiated function does not
+      use), so that it can leave out the work for it; otherwise zeros.
+    - `differentiable`: ``(res, lin) -> out``, the same map as ``fun`` in operations JAX
+      differentiates and batches itself: what a second derivative differentiates (the
+      call's, and its transpose's as JAX's transpose of it) where the residuals move.
+      Default: ``fun`` as traced.
 
     **Returns:** ``fun(residual_args, linear_args)``.
     """
@@ -89,15 +104,30 @@ def linear_call(fun: Callable, fun_transpose: Callable, residual_args, linear_ar
             )
         return leaves
 
-    out = _bind(flat_fun, res, lin, flat_transpose)
+    flat_diff = None
+    if differentiable is not None:
+
+        def flat_diff(*args):
+            out = differentiable(
+                jax.tree.unflatten(res_tree, args[:n_res]),
+                jax.tree.unflatten(lin_tree, args[n_res:]),
+            )
+            return jax.tree.leaves(out)
+
+    flat_transpose.symbolic_zeros = bool(symbolic_zeros)
+    out = _bind(flat_fun, res, lin, flat_transpose, flat_diff)
     return jax.tree.unflatten(out_tree[0], out)
 
 
-def _bind(flat_fun: Callable, res: list, lin: list, transpose: Callable) -> list:
+def _bind(flat_fun: Callable, res: list, lin: list, transpose: Callable, diff=None) -> list:
     """Trace ``flat_fun(*res, *lin)`` and bind it; values it closes over become
-    leading constant operands (so the primitive holds no tracer of this trace)."""
+    leading constant operands (so the primitive holds no tracer of this trace).
+    ``diff(*res, *lin)``: the same map, for second derivatives (`linear_call`'s
+    ``differentiable``), kept only where it closes over no traced value."""
     closed = jax.make_jaxpr(flat_fun)(*res, *lin)
     consts = list(closed.consts)
+    if diff is not None and any(isinstance(c, jax.core.Tracer) for c in consts):
+        diff = None
     return linear_call_p.bind(
         *consts,
         *res,
@@ -106,6 +136,7 @@ def _bind(flat_fun: Callable, res: list, lin: list, transpose: Callable) -> list
         n_consts=len(consts),
         n_res=len(res),
         transpose=transpose,
+        diff=diff,
     )
 
 
@@ -113,47 +144,88 @@ def _eval(jaxpr, consts, *args):
     return jaxpr_as_fun(ClosedJaxpr(jaxpr, list(consts)))(*args)
 
 
-def _impl(*args, jaxpr, n_consts, n_res, transpose):
-    del n_res, transpose
+def _impl(*args, jaxpr, n_consts, n_res, transpose, diff):
+    del n_res, transpose, diff
     return _eval(jaxpr, args[:n_consts], *args[n_consts:])
 
 
-def _abstract_eval(*args, jaxpr, n_consts, n_res, transpose):
-    del args, n_consts, n_res, transpose
+def _abstract_eval(*args, jaxpr, n_consts, n_res, transpose, diff):
+    del args, n_consts, n_res, transpose, diff
     return [v.aval for v in jaxpr.outvars]
 
 
-def _jvp(primals, tangents, *, jaxpr, n_consts, n_res, transpose):
-    params = dict(jaxpr=jaxpr, n_consts=n_consts, n_res=n_res, transpose=transpose)
+def _jvp(primals, tangents, *, jaxpr, n_consts, n_res, transpose, diff):
+    params = dict(jaxpr=jaxpr, n_consts=n_consts, n_res=n_res, transpose=transpose, diff=diff)
     n_pre = n_consts + n_res
     if not all(type(t) is ad.Zero for t in tangents[:n_pre]):
-        raise NotImplementedError("linear_call does not differentiate its residuals")
+        # moved residuals (a second derivative): JAX's jvp of the callee, value and
+        # tangent; of its differentiable form where it has one (`linear_call`)
+        nz = [type(t) is not ad.Zero for t in tangents]
+        xs = [p for p, z in zip(primals, nz, strict=True) if z]
+        use_diff = diff is not None and not any(nz[:n_consts])
+
+        def g(*xs):
+            it = iter(xs)
+            args = [next(it) if z else p for p, z in zip(primals, nz, strict=True)]
+            if use_diff:
+                return diff(*args[n_consts:])
+            return _eval(jaxpr, args[:n_consts], *args[n_consts:])
+
+        ts = [t for t in tangents if type(t) is not ad.Zero]
+        return jax.jvp(g, xs, ts)
     out = linear_call_p.bind(*primals, **params)
     lin_t = [ad.instantiate_zeros(t) for t in tangents[n_pre:]]
     return out, linear_call_p.bind(*primals[:n_pre], *lin_t, **params)
 
 
-def _transpose(cts, *args, jaxpr, n_consts, n_res, transpose):
+def _transpose(cts, *args, jaxpr, n_consts, n_res, transpose, diff):
     consts, res, lin = args[:n_consts], args[n_consts : n_consts + n_res], args[n_consts + n_res :]
     if not all(ad.is_undefined_primal(x) for x in lin) or any(
         ad.is_undefined_primal(x) for x in (*consts, *res)
     ):
         raise NotImplementedError("linear_call transposes in its linear inputs only")
-    cts = [
-        jnp.zeros(v.aval.shape, v.aval.dtype) if type(ct) is ad.Zero else ct
-        for ct, v in zip(cts, jaxpr.outvars, strict=True)
-    ]
+    zero = [type(ct) is ad.Zero for ct in cts]
+    if not getattr(transpose, "symbolic_zeros", False):
+        cts = [
+            jnp.zeros(v.aval.shape, v.aval.dtype) if z else ct
+            for ct, z, v in zip(cts, zero, jaxpr.outvars, strict=True)
+        ]
+        zero = [False] * len(cts)
     res = list(res)
 
-    def back(res_leaves, ct_leaves):  # the transpose's transpose: the callee itself
-        return _eval(jaxpr, consts, *res_leaves, *ct_leaves)
+    def with_nones(given):  # every output's cotangent: None for the symbolic zeros
+        it = iter(given)
+        return [None if z else next(it) for z in zero]
 
-    out = _bind(lambda *a: transpose(list(a[:n_res]), list(a[n_res:])), res, cts, back)
+    def back(res_leaves, ct_leaves):  # the transpose's transpose: the callee itself
+        outs = _eval(jaxpr, consts, *res_leaves, *ct_leaves)
+        return [o for o, z in zip(outs, zero, strict=True) if not z]
+
+    def call(*a):
+        return transpose(list(a[:n_res]), with_nones(a[n_res:]))
+
+    given = [ct for ct, z in zip(cts, zero, strict=True) if not z]
+    t_diff = None
+    if diff is not None:
+        lin_avals = [x.aval for x in lin]
+        out_avals = [v.aval for v in jaxpr.outvars]
+
+        def t_diff(*a):  # JAX's transpose of ``diff``, linear in its last arguments
+            res_leaves, full = list(a[:n_res]), with_nones(a[n_res:])
+            zeros = [jnp.zeros(v.shape, v.dtype) for v in lin_avals]
+            _, pull = jax.vjp(lambda *lin: diff(*res_leaves, *lin), *zeros)
+            full = [
+                jnp.zeros(v.shape, v.dtype) if c is None else c
+                for c, v in zip(full, out_avals, strict=True)
+            ]
+            return list(pull(full))
+
+    out = _bind(call, res, given, back, t_diff)
     return [None] * (n_consts + n_res) + list(out)
 
 
-def _batch(args, dims, *, jaxpr, n_consts, n_res, transpose):
-    params = dict(jaxpr=jaxpr, n_consts=n_consts, n_res=n_res, transpose=transpose)
+def _batch(args, dims, *, jaxpr, n_consts, n_res, transpose, diff):
+    params = dict(jaxpr=jaxpr, n_consts=n_consts, n_res=n_res, transpose=transpose, diff=diff)
     n_out = len(jaxpr.outvars)
     if all(d is None for d in dims):
         return linear_call_p.bind(*args, **params), [None] * n_out
@@ -174,8 +246,19 @@ def _batch(args, dims, *, jaxpr, n_consts, n_res, transpose):
         res_leaves = pre_leaves[n_consts:]
         return jax.vmap(transpose, in_axes=(res_axes, 0))(res_leaves, ct_leaves)
 
-    out = _bind(batched, pre, lin, batched_transpose)
+    batched_transpose.symbolic_zeros = getattr(transpose, "symbolic_zeros", False)
+    b_diff = None
+    if diff is not None and all(d is None for d in dims[:n_consts]):
+        b_diff = jax.vmap(diff, in_axes=(*res_axes, *[0] * len(lin)))
+        b_diff = _dropping_consts(b_diff, n_consts)
+    out = _bind(batched, pre, lin, batched_transpose, b_diff)
     return out, [0] * n_out
+
+
+def _dropping_consts(fn: Callable, n_consts: int) -> Callable:
+    """``fn(*res, *lin)`` called as ``g(*consts, *res, *lin)``: the batched call's operands
+    lead with the unbatched constants, which ``fn`` closes over."""
+    return lambda *a: fn(*a[n_consts:])
 
 
 if AVAILABLE:

@@ -145,7 +145,7 @@ def _tangent_masks(step, P, c0, nz_P: list, nz_c: list, elements: bool = False) 
     ``elements=True`` adds a third result: per leaf of ``(P, c0)`` (every leaf), the
     element mask of what can have a nonzero tangent, from the same fixed point run
     on elements. It is finer than the leaf flags: a body and a reference attitude
-    stacked in one carry leaf are told apart (`_Loop.obs_kinds`).
+    stacked in one carry leaf are told apart (`Programs.obs_kinds`).
     """
     pl, pt = jax.tree.flatten(P)
     cl, ct = jax.tree.flatten(c0)

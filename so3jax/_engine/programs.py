@@ -7,8 +7,8 @@
   `so3jax._engine.masks`), in both layouts;
 - the Jacobian programs (the primal once and ``n`` unit tangents batched over it, with
   attitude tangents as three numbers in the scalarized layout: the ``"frames"`` pass);
-- the discrete adjoint (a backward scan of ``jax.vjp`` of one step, states recomputed
-  from checkpoints every ``K`` steps).
+- the discrete adjoint (a backward scan over checkpointed segments of ``jax.vjp`` of a
+  segment's steps, through the differentiated leaves alone).
 
 Each equals JAX's own derivative of the reference to round-off
 (``tests/test_engine.py``, ``tests/passes/``). References: A. Griewank, A. Walther,
@@ -316,40 +316,84 @@ class Programs(Loop):
         m = jnp.clip(m, 0, self.n_save - 1)
         return j, jax.tree.map(lambda a: a[m], ct_obs), is_save
 
-    def adj_array(self, P, c0, ct_obs, ct_cN):
-        K, S = self.K, self.S
+    def _step_cts(self, ct_obs):
+        """The observation cotangents per step, ``(S, K, ...)`` per leaf: a saved point's
+        after the step that reaches it, zero after every other step and past the end."""
 
-        def advance(c, s):  # one segment, saving nothing
+        def per_step(a):
+            if self.save_every > 1:
+                pad = jnp.zeros((self.n_save, self.save_every - 1) + a.shape[1:], a.dtype)
+                a = jnp.concatenate([pad, a[:, None]], axis=1).reshape((self.n,) + a.shape[1:])
+            tail = jnp.zeros((self.S * self.K - self.n,) + a.shape[1:], a.dtype)
+            a = jnp.concatenate([a, tail])
+            return a.reshape((self.S, self.K) + a.shape[1:])
+
+        return jax.tree.map(per_step, ct_obs)
+
+    def checkpoints(self, P, c0):
+        """The carries at the start of each of the ``S`` segments of ``K`` steps."""
+        K = self.K
+
+        def advance(c, s):
             def one(c, i):
                 return self._masked_step(P, c, s * K + i), None
 
             return jax.lax.scan(one, c, jnp.arange(K))[0], c
 
-        _, ckpts = jax.lax.scan(advance, c0, jnp.arange(S))
+        return jax.lax.scan(advance, c0, jnp.arange(self.S))[1]
 
-        def segment(carry, s_ck):
+    def adj_array(self, mP, mc, keep, P, c0, ct_obs, ct_cN):
+        """The discrete adjoint: ``(gP, gc0)``, the cotangents of the float leaves of ``P``
+        and ``c0`` given those of the observations and of the final carry.
+
+        ``ct_obs`` holds the cotangents of the observation leaves flagged in ``keep``
+        only (one flag per leaf): the others' are zero, and their part of the backward
+        pass is left out. ``ct_cN``: one per float leaf of the final carry.
+
+        The carries at the segments' starts are computed first (`checkpoints`); then,
+        last segment first, JAX's ``vjp`` of the segment's ``K`` steps and their
+        observations, as a function of the float leaves flagged in ``mP`` and ``mc``
+        (`_tangent_masks`) only: the others have a zero tangent, so no cotangent reaching
+        them contributes, and their entries of ``gP``, ``gc0`` are zeros. Per-step
+        observation cotangents enter as the loop's inputs (`_step_cts`). The segment's
+        residuals are its own (memory ``~ K + n / K`` steps).
+        """
+        K = self.K
+        pf, cf = _floats(P), _floats(c0)
+
+        def segment(carry, x):
             lam, acc = carry
-            s, ck = s_ck
+            s, ck, cts = x
+            ckf = _floats(ck)
 
-            def one(c, i):
-                return self._masked_step(P, c, s * K + i), c
+            def steps(Pm, cm):
+                Pp = _with_floats(P, _fill(mP, Pm, pf))
 
-            _, states = jax.lax.scan(one, ck, jnp.arange(K))
-            j, cts, is_save = self._segment_cts(ct_obs, s)
+                def one(c, i):
+                    c1 = self._masked_step(Pp, c, s * K + i)
+                    return c1, _pick(keep, jax.tree.leaves(self.observe(Pp, c1)))
 
-            def back(carry, x):
-                lam, acc = carry
-                c, ct_o, sv, jj = x
-                return self._vjp_step((P, c, lam, acc, ct_o, sv, jj < self.n)), None
+                c = _with_floats(ck, _fill(mc, cm, ckf))
+                cK, obs = jax.lax.scan(one, c, jnp.arange(K))
+                return _pick(mc, _floats(cK)), obs
 
-            (lam, acc), _ = jax.lax.scan(back, (lam, acc), (states, cts, is_save, j), reverse=True)
-            return (lam, acc), None
+            _, pull = jax.vjp(steps, _pick(mP, pf), _pick(mc, ckf))
+            gP, lam = pull((lam, cts))
+            return (lam, [a + g for a, g in zip(acc, gP, strict=True)]), None
 
-        acc0 = [jnp.zeros_like(p) for p in _floats(P)]
-        (lam, acc), _ = jax.lax.scan(
-            segment, (list(ct_cN), acc0), (jnp.arange(S), ckpts), reverse=True
-        )
-        return acc, lam
+        acc0 = [jnp.zeros_like(p) for p in _pick(mP, pf)]
+        carry0 = (_pick(mc, ct_cN), acc0)
+        cts = self._step_cts(list(ct_obs))
+        if self.S == 1:
+            # One segment: its loops stand alone. A loop over one segment, hoisted whole,
+            # made XLA's older CPU emitter abort the process ("All or none of the slices
+            # should have an explicit index").
+            (lam, acc), _ = segment(carry0, (0, c0, jax.tree.map(lambda a: a[0], cts)))
+        else:
+            xs = (jnp.arange(self.S), self.checkpoints(P, c0), cts)
+            (lam, acc), _ = jax.lax.scan(segment, carry0, xs, reverse=True)
+        gP = _fill(mP, acc, [jnp.zeros_like(p) for p in pf])
+        return gP, _fill(mc, lam, [jnp.zeros_like(c) for c in cf])
 
     def adj_scalar(self, P, c0, ct_obs, ct_cN, cut=None):
         K, S = self.K, self.S

@@ -64,7 +64,9 @@ def _with_float0(out, out_nz: list, tan: list):
     return jax.tree.unflatten(jax.tree.structure(out), _fill(out_nz, tan, zeros))
 
 
-def _linear_tangent(plain: Callable, fast: Callable, xs, others, ts, real: list, max_columns=None):
+def _linear_tangent(
+    plain: Callable, fast: Callable, xs, others, ts, real: list, max_columns=None, adjoint=None
+):
     """``fast(xs, ts, others)``, linear in ``ts``, transposable and differentiable.
 
     ``fast`` (a `_dual`: a ``custom_vmap`` that JAX can neither partially evaluate nor
@@ -76,7 +78,11 @@ def _linear_tangent(plain: Callable, fast: Callable, xs, others, ts, real: list,
     ``custom_jvp`` whose rule is JAX's ``jvp`` of ``plain``, because a ``linear_call``
     cannot differentiate its residuals: third derivatives. ``max_columns``: the
     largest number of columns (default the policy's ``forward_jacobian_max``);
-    `forward_differentiated` takes columns whatever their number.
+    `forward_differentiated` takes columns whatever their number. ``adjoint(res, cts)``,
+    if given, is the transpose whatever the number of scalars, with ``None`` for each
+    cotangent that is a symbolic zero (`linear_call`'s ``symbolic_zeros``); a second
+    derivative through it (reverse over reverse) differentiates JAX's transpose of
+    ``plain`` instead (`linear_call`'s ``differentiable``).
     """
     shapes = [jax.ShapeDtypeStruct(jnp.shape(t), jnp.result_type(t)) for t in ts]
     n_real = sum(math.prod(s.shape) for s, r in zip(shapes, real, strict=True) if r)
@@ -91,8 +97,20 @@ def _linear_tangent(plain: Callable, fast: Callable, xs, others, ts, real: list,
         zeros = [jnp.zeros(s.shape, s.dtype) for s in shapes]
         return jax.vjp(lambda ts: plain(res[0], ts, res[1]), zeros)[1](cts)[0]
 
+    def differentiable(res, ts):  # what a second derivative of ``adjoint`` differentiates
+        return plain(res[0], ts, res[1])
+
     @jax.custom_jvp
     def tangent(xs, others, ts):
+        if adjoint is not None:
+            return linear_call(
+                callee,
+                adjoint,
+                (xs, others),
+                ts,
+                symbolic_zeros=True,
+                differentiable=differentiable,
+            )
         return linear_call(callee, transpose, (xs, others), ts)
 
     def tangent_jvp(primals, tangents):
@@ -188,7 +206,7 @@ def _jvp_through(fn: Callable, treedef, leaves: list, t_leaves: list, nz: list):
 
 
 def _linear_call_batches() -> bool:
-    """Whether so3jax's own batching ``linear_call`` primitive (`so3jax._linear_call`) is
+    """Whether so3jax's own batching ``linear_call`` primitive (`so3jax._engine.linear_call`) is
     available; where it is not, the engine runs its reference programs and says so once."""
     if not _linear_call.AVAILABLE:  # pragma: no cover - a JAX release that moved the tables
         warnings.warn(

@@ -124,7 +124,7 @@ def _batched_with(out, inputs):
     engine's forward programs batch every output (`_dual`'s ``custom_vmap``
     rule, ``program="array"`` included); JAX's ``jvp`` of the checkpointed array
     program batches only the outputs that depend on a batched input or tangent
-    (the run's times, say, do not), so `_checkpointed_jvp` passes its outputs
+    (the run's times, say, do not), so `so3jax._engine.derivatives.Autodiff` passes its outputs
     through here. Without it, ``jacfwd`` and ``grad`` of the mean of a ``vmap`` over
     the quadrotor's 12 gains raised "Cannot concatenate arrays with different
     numbers of dimensions". The zeros are ``where(False, ...)``

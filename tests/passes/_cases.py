@@ -4,7 +4,8 @@ Four steps (the seed's Lie-Euler step, its LGVI step, the quadrotor with its con
 over a period, and a step containing ``lax.cond``), each as a function of two
 differentiated scalars ``k``,
 under five transforms: ``jit`` of one run's trajectory, ``vmap`` of a batch (its mean
-cost), and ``grad``, ``jacfwd`` and ``jax.hessian`` of that mean. The reference is the
+cost), and ``grad``, ``jacfwd`` and ``jax.hessian`` of that mean (first derivatives only
+for `FIRST_ORDER`). The reference is the
 same call with every pass off (`so3jax._engine.policy.using(passes=frozenset())`): the
 array program, batched and differentiated by the engine's derivative strategies, which
 ``tests/test_engine.py`` proves equal to JAX's own autodiff.
@@ -153,13 +154,16 @@ def functions(name) -> dict:
     def mean(k):
         return jnp.mean(jax.vmap(lambda a, b: one(k, a, b))(*starts))
 
-    return {
+    fns = {
         "jit": jax.jit(trajectory),
         "vmap": jax.jit(mean),
         "grad": jax.jit(jax.grad(mean)),
         "jacfwd": jax.jit(jax.jacfwd(mean)),
         "hessian": jax.jit(jax.hessian(mean)),
     }
+    if name in FIRST_ORDER:
+        del fns["hessian"]
+    return fns
 
 
 def results(name, passes) -> dict:
@@ -180,12 +184,24 @@ def reference(name) -> dict:
     return cached(name, frozenset())
 
 
-#: The cases each pass module proves its pass alone on: the step with ``lax.cond`` in the
-#: suite, and the seed's too where ``SO3JAX_TEST_PASS_CASES`` names them (CI's run on the
-#: newest JAX: ``seed,cond``; any of `CASES`). ``test_passes_together.py`` proves every pass
-#: together on all of `CASES`. Compiling one case's five transforms takes seconds, and seven
-#: policies (six passes and the reference) over four cases would double the suite's time.
-ALONE = tuple(c for c in os.environ.get("SO3JAX_TEST_PASS_CASES", "cond").split(",") if c in CASES)
+#: Cases whose second derivatives are not compiled: a Hessian of LGVI's or the quadrotor's
+#: batch compiles for tens of seconds under each policy (the seed's and the ``lax.cond``
+#: step's prove the passes under ``jax.hessian``).
+FIRST_ORDER = ("lgvi", "quadrotor")
+
+
+def _cases_from(variable: str, default: str) -> tuple:
+    return tuple(c for c in os.environ.get(variable, default).split(",") if c in CASES)
+
+
+#: The cases each pass module proves its pass alone on (``SO3JAX_TEST_PASS_CASES``), and
+#: those ``test_passes_together.py`` proves every pass together on
+#: (``SO3JAX_TEST_PASS_TOGETHER``). Compiling one case's transforms under one policy takes
+#: seconds, and seven policies over four cases would double the suite's time: each pass
+#: alone on the step with ``lax.cond``, all together on every case. (Any of `CASES`, comma
+#: separated: ``SO3JAX_TEST_PASS_CASES=seed,cond`` proves each pass alone on the seed too.)
+ALONE = _cases_from("SO3JAX_TEST_PASS_CASES", "cond")
+TOGETHER = _cases_from("SO3JAX_TEST_PASS_TOGETHER", ",".join(CASES))
 
 
 def plan(name, transform, passes):
@@ -200,7 +216,8 @@ def assert_equal_to_reference(passes, name, rtol=1e-10):
     (relative to each result's largest entry)."""
     got = cached(name, frozenset(passes))
     ref = reference(name)
-    for t in TRANSFORMS:
+    assert got.keys() == ref.keys()
+    for t in got:
         for a, b in zip(jax.tree.leaves(got[t]), jax.tree.leaves(ref[t]), strict=True):
             scale = max(float(np.max(np.abs(b))), 1e-300)
             err = float(np.max(np.abs(a - b))) / scale

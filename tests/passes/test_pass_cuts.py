@@ -3,8 +3,8 @@ reference.
 
 Under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian`` (`_cases`): the pass alone
 (with what it needs, `_cases.NEEDS`) against every pass off, on the steps of `_cases.ALONE`;
-``test_passes_together.py`` runs every pass together on the seed, LGVI, the quadrotor with
-its control held and that step. The plan (`so3jax.explain`) shows the pass acting, so the
+``test_passes_together.py`` runs every pass together on the
+steps of `_cases.TOGETHER`. The plan (`so3jax.explain`) shows the pass acting, so the
 comparison is not of a program with itself.
 """
 

@@ -1,12 +1,12 @@
 """Attitude tangents as three numbers: a forward-mode interpreter for the engine.
 
-The engine's Jacobian programs (`so3jax._engine._Loop.jac_array` / ``jac_scalar``) carry,
-for every differentiated input, the tangent of each carry leaf. JAX's ``jvp`` gives a
-rotation ``R`` a tangent of the same shape, nine numbers, although every tangent the
-group updates produce has the form ``dR = R hat(xi)``: three numbers in the body frame.
-Carried as nine, each update pays for a product of ``dR`` with a 3x3 matrix (45
-operations a column) where ``exp(w)^T xi`` costs about 15, and the controller forms
-``dR^T Rd`` in full.
+The engine's Jacobian programs (`so3jax._engine.programs.Programs.jac_array` /
+``jac_scalar``) carry, for every differentiated input, the tangent of each carry leaf.
+JAX's ``jvp`` gives a rotation ``R`` a tangent of the same shape, nine numbers, although
+every tangent the group updates produce has the form ``dR = R hat(xi)``: three numbers
+in the body frame. Carried as nine, each update pays for a product of ``dR`` with a 3x3
+matrix (45 operations a column) where ``exp(w)^T xi`` costs about 15, and the controller
+forms ``dR^T Rd`` in full.
 
 `frame_jvp` is ``jax.jvp`` with such tangents allowed: an input tangent may be a
 `Frame`, ``xi`` with the primal's shape less its last axis, meaning ``R hat(xi)``
@@ -310,7 +310,7 @@ def _frame_eqn(eqn, xs, ts, uniform):
             return None, None
         return list(res[0]), list(res[1])
     if name == "cond" and cuts._is_cut(eqn.params["branches"]):
-        # A fusion cut (`so3jax._scalarize.fusion_cut`) of values with `Frame` tangents and
+        # A fusion cut (`so3jax._engine.passes.cuts.fusion_cut`) of values with `Frame` tangents and
         # none dense: the values through it, the frames beside it (the operands after the
         # index are its outputs, one to one).
         if any(t is not None and not isinstance(t, Frame) for t in ts):
@@ -377,7 +377,7 @@ def _jvp_with_frames(fn, Pm, cm, dP, dc, fr):
 
 
 def _frame_step(g, Pm, cm, dP, dc, fr):
-    """``(dc1, c1)``: `_Loop._tstep`'s ``jvp`` of ``g`` (``-> (masked carry floats, c1)``)
+    """``(dc1, c1)``: `Programs._tstep`'s ``jvp`` of ``g`` (``-> (masked carry floats, c1)``)
     with `Frame` carry tangents.
 
     Raises `FrameError` naming the leaves whose tangent came out dense."""
@@ -399,7 +399,7 @@ def _frame_step(g, Pm, cm, dP, dc, fr):
 
 
 def _frame_observe(o, Pm, cm, dP, dc, fr):
-    """`_Loop._tobs`'s tangent of ``o`` with `Frame` carry tangents (dense outputs)."""
+    """`Programs._tobs`'s tangent of ``o`` with `Frame` carry tangents (dense outputs)."""
     outs, touts, treedef = _jvp_with_frames(o, Pm, cm, dP, dc, fr)
     tan = [
         jnp.zeros_like(x) if t is None else dense(x, t) for x, t in zip(outs, touts, strict=True)
@@ -407,7 +407,7 @@ def _frame_observe(o, Pm, cm, dP, dc, fr):
     return jax.tree.unflatten(treedef, tan)
 
 
-#: An observation's kind in the Jacobian programs (`_Loop.obs_kinds`): no tangent (not
+#: An observation's kind in the Jacobian programs (`Programs.obs_kinds`): no tangent (not
 #: computed; zeros outside), a dense one, or a `Frame` ``xi`` (right, left), three numbers
 #: per rotation that `_jacobian_jvp` turns dense after the loop.
 OBS_ZERO, OBS_DENSE, OBS_RIGHT, OBS_LEFT = 0, 1, 2, 3
@@ -442,7 +442,7 @@ def _with_frames(mc, c0, nz_c) -> tuple:
     shaped, without an input tangent (it starts at zero, ``R hat(0)`` for any ``R``).
 
     Whether a step keeps it a frame is found when the scalarized Jacobian program is
-    traced (`_Loop.jac_scalar`, which falls back to nine numbers for a leaf whose tangent
+    traced (`Programs.jac_scalar`, which falls back to nine numbers for a leaf whose tangent
     comes out dense, such as LGVI's); the array layout always carries nine.
     """
     return tuple(
@@ -458,7 +458,7 @@ def _frame_dense(R, xi, left: bool):
     with splits and concatenations only, so that JAX's transpose (``grad`` of a cost on the
     saved rotations) is elementwise too.
 
-    `so3jax._frames.dense` broadcasts ``xi`` over ``R``'s rows and slices both; JAX
+    `dense` broadcasts ``xi`` over ``R``'s rows and slices both; JAX
     transposes the broadcast into a sum over an axis of three (which XLA's CPU compiler
     hands to a library reduction) and each slice into a pad. Here ``xi`` is concatenated
     three times (transposed: three slices added) and components are split (transposed:

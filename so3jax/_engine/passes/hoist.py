@@ -43,7 +43,7 @@ def _tracing(what: str, runs: int = 1):
     - Only forward runs hoist loops with reductions; a derivative program's are written
       out first (`_unrolled`). A derivative program's loop can be batched again after
       `_hoisted` chose, by a ``vmap`` around a derivative JAX staged (no Python of ours
-      runs then), and its reductions would then grow past `HOIST_MAX_REDUCED`:
+      runs then), and its reductions would then grow past ``hoist_max_reduced``:
       ``vmap`` of ``grad`` over 5 gain sets of the mean cost over 16 starts failed to
       compile so ("Fusion kind not implemented on CPU"). A forward run is batched
       through its own ``custom_vmap`` rule, which sizes it again.
@@ -61,22 +61,25 @@ def _tracing(what: str, runs: int = 1):
 #: Primitives a hoisted loop may hold. XLA compiles the loop with its older CPU
 #: emitter, which refuses dots, convolutions, scatters and custom calls (linear
 #: algebra, callbacks, sorting, FFTs): a loop with anything not listed runs as before.
+#: ``pad``, ``split`` and ``empty2`` are what JAX's transpose of a step and of a loop
+#: adds (of ``slice``, ``concatenate``, and a loop's stacked residuals): the discrete
+#: adjoint's loops hold them.
 _HOISTABLE = frozenset(
     """abs acos acosh add add_any and asin asinh atan atan2 atanh broadcast_in_dim cbrt ceil
     checkpoint clamp closed_call concatenate cond convert_element_type copy copy_p cos
     cosh custom_jvp_call custom_vjp_call custom_vjp_call_jaxpr custom_vmap_call div
-    dynamic_slice dynamic_update_slice eq erf erf_inv erfc exp exp2 expm1 expand_dims floor
+    dynamic_slice dynamic_update_slice empty2 eq erf erf_inv erfc exp exp2 expm1 expand_dims floor
     ge gt integer_pow iota is_finite jit le log log1p logistic lt max min mul ne neg
-    nextafter not optimization_barrier or pjit pow reduce_and reduce_max reduce_min
+    nextafter not optimization_barrier or pad pjit pow reduce_and reduce_max reduce_min
     reduce_or reduce_precision reduce_prod reduce_sum rem remat2 reshape rev round rsqrt scan
-    select_n sign sin sinh slice sqrt square squeeze stack stop_gradient sub tan tanh
+    select_n sign sin sinh slice split sqrt square squeeze stack stop_gradient sub tan tanh
     transpose unstack while xor""".split()
 )
 
 
 def _hoistable(jaxpr, runs: int = 1, reductions: bool = True) -> bool:
     """Whether every equation of ``jaxpr`` (nested ones too) is in `_HOISTABLE`, with no
-    reduction (none at all without ``reductions``) over more than `HOIST_MAX_REDUCED`
+    reduction (none at all without ``reductions``) over more than ``hoist_max_reduced``
     elements in a batch of ``runs`` runs (``runs=0``: whatever its reductions)."""
     for e in jaxpr.eqns:
         if e.primitive.name not in _HOISTABLE:
@@ -92,8 +95,12 @@ def _hoistable(jaxpr, runs: int = 1, reductions: bool = True) -> bool:
     return True
 
 
-def _hoisted(loop: Callable, *args):
+def _hoisted(loop: Callable, *args, xs_from: int | None = None):
     """``loop(*args)`` (a `lax.scan`), compiled as one kernel on a CPU.
+
+    ``xs_from``: the index, among the leaves of ``args``, of the first one the loop scans
+    over (a ``scan``'s ``xs``); the policy's ``hoist_max_bytes`` counts those by the slice
+    one iteration reads, as the loop's work grows with that slice and not with its length.
 
     XLA's CPU runtime runs a loop body as one kernel per fusion: some 300 a step
     for the seed's batched forward pass, 640 for its Jacobian program, each
@@ -114,11 +121,11 @@ def _hoisted(loop: Callable, *args):
     slice_to_buffer_table_index_.empty() || has_explicit_index``; the gradient of a
     free body's run whose start was a constant of the jitted cost). A loop that
     holds reductions where `_tracing` allows none (a derivative program's), or one
-    over more than `HOIST_MAX_REDUCED` elements, is hoisted with its reductions written
+    over more than ``hoist_max_reduced`` elements, is hoisted with its reductions written
     out (`_unrolled`) if that is all that stood in the way. Loops with a primitive
-    outside `_HOISTABLE` or a reduction over more than `UNROLL_MAX_TERMS` terms and
-    `HOIST_MAX_REDUCED` elements, loops whose largest input leaf takes more than
-    `HOIST_MAX_BYTES` over the batch, second derivatives' loops (`_tracing`), every
+    outside `_HOISTABLE` or a reduction over more than ``unroll_max_terms`` terms and
+    ``hoist_max_reduced`` elements, loops whose largest input leaf takes more than
+    ``hoist_max_bytes`` over the batch, second derivatives' loops (`_tracing`), every
     loop off a CPU, and every loop
     where JAX sees more than one device run as before: XLA partitions a sharded program after
     this choice, and a hoisted loop then calls collectives the older emitter cannot
@@ -134,7 +141,13 @@ def _hoisted(loop: Callable, *args):
         _plan.note("hoisting", hoisted=False, runs=runs, why="not a single CPU device")
         return loop(*args)
     leaves = jax.tree.leaves(args)
-    per_run = max((jnp.size(x) * jnp.result_type(x).itemsize for x in leaves), default=0)
+    sizes = [jnp.size(x) * jnp.result_type(x).itemsize for x in leaves]
+    if xs_from is not None:
+        sizes = [
+            b // max(1, jnp.shape(x)[0]) if i >= xs_from else b
+            for i, (x, b) in enumerate(zip(leaves, sizes, strict=True))
+        ]
+    per_run = max(sizes, default=0)
     if per_run * runs > policy.hoist_max_bytes:
         _plan.note(
             "hoisting", hoisted=False, runs=runs, why="a leaf over the policy's hoist_max_bytes"

@@ -530,7 +530,7 @@ def flat_program(fn: Callable, example, index=None, cut_cone: int | None = None,
 
 def _batched_const(x) -> bool:
     """Whether a constant of a flat program is batched by an enclosing `vmap`
-    (`so3jax._jax.batched`)."""
+    (`so3jax._engine._jax.batched`)."""
     return _jax.batched(x)
 
 

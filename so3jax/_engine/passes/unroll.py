@@ -63,15 +63,15 @@ def _has_small_reduction(jaxpr) -> bool:
 
 
 def _unrolled(closed):
-    """``closed`` (a `ClosedJaxpr`) with its reductions over at most `UNROLL_MAX_TERMS`
+    """``closed`` (a `ClosedJaxpr`) with its reductions over at most ``unroll_max_terms``
     terms, nested jaxprs' too, written out term by term (`_eval_unrolled`).
 
     A batched loop's reductions grow with its batch, and XLA fuses a reduction over
-    more than `HOIST_MAX_REDUCED` elements into a kernel its older emitter does not
+    more than ``hoist_max_reduced`` elements into a kernel its older emitter does not
     implement. Written out, the loop holds none, whatever batch a later ``vmap``
     gives it: so the derivative programs of the array layout can be hoisted, which
     makes them several times faster. A forward program keeps its reductions while
-    they fit `HOIST_MAX_REDUCED` (written out, they are slower there); past it they are
+    they fit ``hoist_max_reduced`` (written out, they are slower there); past it they are
     written out too, which is still faster than not hoisting.
     """
     if not current().on("unroll") or not _has_small_reduction(closed.jaxpr):
@@ -111,7 +111,7 @@ _TERMWISE = frozenset(
 
 
 def _eval_unrolled(jaxpr, consts, args) -> list:
-    """Evaluate ``jaxpr`` with its reductions over at most `UNROLL_MAX_TERMS` terms
+    """Evaluate ``jaxpr`` with its reductions over at most ``unroll_max_terms`` terms
     written out, term by term in row-major order.
 
     A term (``x`` at one index of the reduced axes) is computed from ``x``'s producer
