@@ -208,7 +208,8 @@ class _Traced:
             params = e.primitive.get_bind_params(e.params)
             with e.ctx.manager:
                 if e.primitive.name == "scan":
-                    xs_from = params["num_consts"] + params["num_carry"]
+                    counts = sc.scan_split(e)  # (the parameters' names move between JAX releases)
+                    xs_from = None if counts is None else sum(counts)
                     loop = functools.partial(e.primitive.bind, **params)
                     outs = _hoisted(loop, *ins, xs_from=xs_from)
                 else:
