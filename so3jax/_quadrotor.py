@@ -53,7 +53,7 @@ from ._control import _check_gain, _geometric_torque
 from ._dynamics import RigidBody
 from ._repr import module_repr
 from ._scene import Scene, check_rotation
-from ._scenes import _as_body, _cast_floats, _check_reference
+from ._scenes import _as_body, _cast_floats, _check_reference, _steps_per_hold
 from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _to_dtype, _vee
 from ._state import LieState, LieTangent
 from ._trajectory import COMMAND_UNDEFINED, OK
@@ -594,15 +594,7 @@ class Quadrotor(Scene):
         Call it eagerly where ``dt`` and the period are known (`simulate` does
         through `for_step`; a traced period inside ``jit`` cannot be checked).
         """
-        T = float(np.asarray(self.control_period, np.float64))
-        ratio = T / float(np.asarray(dt, np.float64))
-        n = round(ratio)
-        if n < 1 or abs(ratio - n) > 1e-6 * max(1.0, ratio):
-            raise ValueError(
-                f"dt ({float(dt):g}) must divide control_period ({T:g}) into a whole "
-                f"number of steps; got control_period / dt = {ratio:.6g}"
-            )
-        return n
+        return _steps_per_hold(self.control_period, dt)
 
     def control(self, t, y) -> QuadrotorControl:
         """The controller at ``(t, y)`` (continuous-time formulas)."""

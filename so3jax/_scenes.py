@@ -242,8 +242,8 @@ class Tracking(MechanicalScene):
 def _steps_per_hold(control_period, dt) -> int:
     """``control_period / dt``; ``ValueError`` unless ``dt`` divides the period.
 
-    The rule of the quadrotor's `Quadrotor.steps_per_hold`: the ratio must be a
-    whole number ``>= 1`` to a relative ``1e-6``.
+    The rule of every sampled scene (`Quadrotor.steps_per_hold` too): the ratio must be
+    a whole number ``>= 1`` to a relative ``1e-6``.
     """
     T = float(np.asarray(control_period, np.float64))
     ratio = T / float(np.asarray(dt, np.float64))
