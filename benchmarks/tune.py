@@ -15,7 +15,7 @@ engine (`so3jax._engine`):
 - reverse, checkpointed: JAX's transpose of the checkpointed array program
   (``program="autodiff"``, memory ~ sqrt(n));
 - reverse, discrete adjoint: the engine's own backward scan of ``jax.vjp`` of
-  one step from checkpoints (``program="adjoint"``);
+  each checkpointed segment (``program="adjoint"``);
 - reverse, no checkpoints (JAX's transpose, memory ~ n);
 - forward mode (default, `jax.jacfwd`, 2 tangents): the same one-pass Jacobian;
 - forward mode, JAX's ``jvp`` of the checkpointed array program

@@ -140,9 +140,8 @@ SEED_METHOD = s.LieEuler()
 
 
 def test_adjoint_on_the_seed():
-    """The seed (gains, controller, reference): the discrete adjoint, and the tangent
-    program that ``program="adjoint"`` runs in forward mode (the default runs neither:
-    through more than 8 scalars it is JAX's own ``jvp``), equal autodiff."""
+    """The seed (gains, controller, reference): ``program="adjoint"``'s discrete adjoint in
+    reverse mode, and its forward mode, equal autodiff."""
     ref = _jit_grad(_traj_cost("autodiff", SEED_METHOD))(K0)
     assert _rel(_jit_grad(_traj_cost("adjoint", SEED_METHOD))(K0), ref) < 1e-10
     assert _rel(jax.jit(jax.jacfwd(_traj_cost("adjoint", SEED_METHOD)))(K0), ref) < 1e-10
@@ -481,14 +480,15 @@ def test_linear_call_under_a_vmap_it_does_not_depend_on():
     assert _rel(got, ref) < 1e-14
 
 
-def test_adjoint_program_second_derivatives_raise_clearly():
-    """``program="adjoint"``'s ``linear_call`` cannot differentiate its residuals: a second
-    derivative says so (it failed with a bare ``AssertionError``). First derivatives stay."""
+def test_adjoint_program_second_derivatives():
+    """``program="adjoint"``'s ``linear_call`` differentiates its residuals through JAX's
+    ``jvp`` of the checkpointed program: ``jax.hessian`` equals autodiff's."""
     f = lambda q: _toy_second(q, "adjoint", False)  # noqa: E731
+    ref = lambda q: _toy_second(q, "autodiff", False)  # noqa: E731
     p = jnp.array([1.3, 0.7])
-    assert _rel(jax.grad(f)(p), jax.grad(lambda q: _toy_second(q, "autodiff", False))(p)) < 1e-12
-    with pytest.raises(NotImplementedError, match='program="auto"'):
-        jax.hessian(f)(p)
+    assert _rel(jax.grad(f)(p), jax.grad(ref)(p)) < 1e-12
+    H = jax.hessian(ref)(p)
+    assert np.abs(H).min() > 0 and _rel(jax.hessian(f)(p), H) < 1e-10
 
 
 def test_batched_programs_are_traced_once(monkeypatch):
@@ -690,8 +690,8 @@ def _seed_mean_cost(key, B: int, n_steps: int, save_every: int = 1):
     return cost
 
 
-def test_scalarized_tangent_program_for_large_batches():
-    """32 starts or more: the tangent program runs scalarized (fusion cuts included).
+def test_scalarized_jacobian_program_for_large_batches():
+    """32 starts or more: the Jacobian program runs scalarized (fusion cuts included).
     With two gains the default reverse mode takes the Jacobian's columns from it, and
     equals JAX's autodiff; so does ``jacfwd``. The columns are the outer axis of every
     tangent component, ``(2, B)`` arrays, not ``(B, 2)`` (`_engine.layout._columns_outside`)."""
@@ -988,10 +988,7 @@ def test_gpu_layout_table(monkeypatch):
         assert (
             _engine.policy.batched_layout("jvp") == dict(_engine.policy.DEFAULT.gpu_layout)["jvp"]
         )
-        assert (
-            _engine.policy.batched_layout("adjoint")
-            == dict(_engine.policy.DEFAULT.batched_layout)["adjoint"]
-        )
+        assert _engine.policy.batched_layout("adjoint") == (None, None)  # array only
         small, array = size(R0s), size(R0s, False)
         assert abs(small - array) < 0.05 * array  # the array program
         assert size(big) > 1.1 * size(big, False)  # the scalarized program

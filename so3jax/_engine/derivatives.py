@@ -12,13 +12,11 @@ There are four, all exact to round-off against each other:
   and its Jacobian in one pass (the primal once, the unit tangents as columns over it);
   the tangent is the Jacobian times the input tangent, and ``grad`` is JAX's transpose
   of that contraction, with nothing stored per step.
-- `DiscreteAdjoint` (``program="adjoint"``): the engine's tangent program in forward
-  mode and its discrete adjoint (a backward scan over checkpointed segments) in reverse
-  mode, whatever the number of inputs, behind so3jax's own ``linear_call``. First
-  derivatives only.
 - `CheckpointedAdjoint`: through more than the policy's ``forward_jacobian_max``
-  scalars, `Autodiff`'s ``jvp`` in forward mode and for second derivatives, and
-  `DiscreteAdjoint`'s adjoint in reverse mode.
+  scalars, and whatever their number with ``program="adjoint"``: `Autodiff`'s ``jvp``
+  in forward mode and for second derivatives, and the engine's discrete adjoint (a
+  backward scan over checkpointed segments) in reverse mode, behind so3jax's own
+  ``linear_call``.
 
 Programs outside the fixed-step engine (`so3jax.simulate` with tolerances, whose loop
 is a ``while_loop``) use the same pieces: `Flagged` splits a rule's inputs into the
@@ -75,7 +73,6 @@ __all__ = [
     "Strategy",
     "Autodiff",
     "OnePassJacobian",
-    "DiscreteAdjoint",
     "CheckpointedAdjoint",
     "choose",
     "differentiated",
@@ -147,57 +144,17 @@ class OnePassJacobian(Strategy):
         return _jacobian_jvp(loop, P, c0, nz, lin, mP, mc, elements)
 
 
-_ADJOINT_FIRST_ORDER = (
-    'program="adjoint" has first derivatives only; for second derivatives '
-    '(jax.hessian, jvp or jacfwd of grad) use program="auto" (the default)'
-)
-
-
-@dataclasses.dataclass(frozen=True)
-class DiscreteAdjoint(Strategy):
-    """The tangent program (`Programs.tan_array` / ``tan_scalar``) in forward mode and the
-    discrete adjoint (`Programs.adj_array` / ``adj_scalar``) as its transpose, whatever
-    the number of inputs. First derivatives only (a second raises
-    ``NotImplementedError``)."""
-
-    name = "discrete adjoint"
-
-    def jvp(self, loop, fwd, primals, tangents):
-        P, c0 = primals
-        nz, lin = _nonzero(primals, tangents)
-        pf, cf = _floats(P), _floats(c0)
-        mP, mc = _tangent_masks(loop.step, P, c0, nz[: len(pf)], nz[len(pf) :])
-        _plan.note("derivative", strategy=self.name, scalars=_size(lin), why='program="adjoint"')
-        out = fwd(P, c0)
-        avals = jax.eval_shape(lambda: out)
-        tan = _tangent_program(loop, mP, mc)
-
-        def tangent(res, lin):
-            P, c0 = res
-            dys, dcN = tan(P, c0, *_masked_tangents(nz, lin, mP, mc, pf, cf))
-            return dys, _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(out[1])])
-
-        def transpose(res, cts):  # ``None``: a symbolic zero (`linear_call`'s symbolic_zeros)
-            P, c0 = res
-            ct_ys = jax.tree.leaves(cts[0], is_leaf=lambda x: x is None)
-            gP, gc = _adjoint_transpose(loop, mP, mc, P, c0, avals, ct_ys, list(cts[1]))
-            return [g for g, z in zip(gP + gc, nz, strict=True) if z]
-
-        res = first_order_only(_ADJOINT_FIRST_ORDER, (P, c0))
-        dys, dcNf = linear_call(tangent, transpose, res, lin, symbolic_zeros=True)
-        return out, (dys, _tangent_tree(out[1], dcNf))
-
-
 @dataclasses.dataclass(frozen=True)
 class CheckpointedAdjoint(Strategy):
-    """Through more than the policy's ``forward_jacobian_max`` scalars: the value from the
+    """Through more than the policy's ``forward_jacobian_max`` scalars (whatever their
+    number with ``program="adjoint"``): the value from the
     run's forward program, the tangent from JAX's ``jvp`` of the checkpointed array program
     in forward mode and the engine's discrete adjoint in reverse mode; second derivatives
     from JAX's ``jvp`` of the checkpointed array program.
 
     The tangent is a ``linear_call`` (`_linear_tangent`) whose program is JAX's ``jvp`` of
     the checkpointed program and whose transpose is the discrete adjoint
-    (`Programs.adj_array` / ``adj_scalar``, `_adjoint_transpose`): each of its
+    (`Programs.adj_array`, `_adjoint_transpose`): each of its
     loops one kernel on a CPU (the ``"hoist"`` pass), where JAX's transpose of
     `Autodiff`'s ``jvp`` runs XLA's loops of many kernels. Observations a cost does not
     use are left out of the backward pass, as JAX's transpose leaves them out. The
@@ -242,34 +199,21 @@ class CheckpointedAdjoint(Strategy):
         return out, _with_float0(out, out_nz, tan)
 
 
-def _tangent_program(loop: Programs, mP: tuple, mc: tuple) -> Callable:
-    """The tangent program of ``loop`` for the masks ``mP``, ``mc`` (`_tangent_masks`):
-    ``(P, c0, dP, dc0) -> (dys, dcN)``, in either layout (`_dual`)."""
-    return _dual(
-        functools.partial(loop.tan_array, mP, mc),
-        functools.partial(loop.tan_scalar, mP, mc),
-        "tangent",
-    )
-
-
 def _adjoint_transpose(loop: Programs, mP, mc, P, c0, avals, ct_ys: list, ct_cN: list):
     """``(gP, gc)``: the discrete adjoint (`Programs.adj_array`) at the cotangents ``ct_ys``
     (one per observation leaf) and ``ct_cN`` (one per float leaf of the final carry),
     where ``None`` is a symbolic zero: an observation the cost does not use is left out
     of the backward pass. ``avals``: the shapes of the run's ``(ys, cN)``."""
-    ys_avals, ys_tree = jax.tree.flatten(avals[0])
     keep = tuple(c is not None for c in ct_ys)
     kept = [c for c in ct_ys if c is not None]
     ct_cN = [
         jnp.zeros(a.shape, a.dtype) if c is None else c
         for c, a in zip(ct_cN, _floats(avals[1]), strict=True)
     ]
-
-    def scalar(P, c0, kept, ct_cN, cut=None):  # every observation's cotangent
-        full = _fill(keep, kept, [jnp.zeros(a.shape, a.dtype) for a in ys_avals])
-        return loop.adj_scalar(P, c0, jax.tree.unflatten(ys_tree, full), ct_cN, cut)
-
-    adj = _dual(functools.partial(loop.adj_array, mP, mc, keep), scalar, "adjoint")
+    # Array layout only: XLA compiles a scalarized adjoint step (thousands of scalar
+    # operations) far more slowly than it runs it. Under ``vmap``, `_dual` batches it.
+    adj = functools.partial(loop.adj_array, mP, mc, keep)
+    adj = _dual(adj, adj, "adjoint")
     gP, gc = adj(P, c0, kept, ct_cN)
     return list(gP), list(gc)
 
@@ -289,13 +233,13 @@ def choose(program: str, n_scalars: int) -> Strategy:
     """The strategy for a run of ``program`` differentiated through ``n_scalars`` scalars.
 
     ``"auto"``: `OnePassJacobian` through at most the policy's ``forward_jacobian_max``
-    scalars, else `CheckpointedAdjoint`; ``"adjoint"``: `DiscreteAdjoint`; ``"array"``, ``"scalar"``
-    (benchmarks) and a JAX release without so3jax's ``linear_call``: `Autodiff`.
+    scalars, else `CheckpointedAdjoint`; ``"adjoint"``: `CheckpointedAdjoint`; ``"array"``,
+    ``"scalar"`` (benchmarks) and a JAX release without so3jax's ``linear_call``: `Autodiff`.
     """
     if program not in ("auto", "adjoint") or not _HAVE_LINEAR_CALL_BATCHING:
         return Autodiff(why="a program that asks for JAX's derivative")
     if program == "adjoint":
-        return DiscreteAdjoint()
+        return CheckpointedAdjoint(why='program="adjoint"')
     limit = current().forward_jacobian_max
     if n_scalars <= limit:
         return OnePassJacobian()

@@ -105,7 +105,7 @@ def _dual(
 def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primals, tangents):
     """`_dual`'s derivative (second derivatives of a run: its rule's programs differentiated).
 
-    For the forward, tangent and Jacobian programs, the value is a `_dual` of the same
+    For the forward and Jacobian programs, the value is a `_dual` of the same
     programs (scalarized under a ``vmap`` of 16 runs or more, ``batched_layout``) and the
     tangent a ``linear_call`` (`_linear_tangent`) whose program is the ``jvp`` of the
     program `_dual` would run, itself a `_dual` (``"jvp"``): a batch's second
@@ -125,7 +125,7 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     ``jvp`` programs once (shorter to lower; the same run and compile times).
     """
     _plan.note("derivative", strategy="second derivative", program=what)
-    if what not in ("run", "tangent", "jacobian") or not _HAVE_LINEAR_CALL_BATCHING:
+    if what not in ("run", "jacobian") or not _HAVE_LINEAR_CALL_BATCHING:
         return _array_jvp(array_fn, primals, tangents)
     leaves, treedef = jax.tree.flatten(primals)
     t_leaves, real = _tangent_leaves(tangents)
@@ -258,9 +258,8 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
             index = cut_index(args) if cuts else None
 
             def runs(*args):
-                if what in ("run", "scalar", "tangent", "jacobian", "jvp") and index is not None:
-                    # The forward, tangent and Jacobian loops settle their carry's batching
-                    # up front (`sc.settle_batched`); the adjoint's backward scan does not.
+                if index is not None:  # the loops settle their carry's batching up front
+                    # (`sc.settle_batched`)
                     def cut(one, *a):
                         return scalar_fn(*a, cut=index, batched=in_batched, one=one)
 

@@ -100,14 +100,14 @@ class Plan:
         - ``"loop"``: a fixed-step loop handed to the engine (``n_steps``,
           ``save_every``, ``program``: the caller's choice, ``"auto"`` by default);
         - ``"layout"``: how one program runs (``program``: ``"run"`` for the forward
-          run, ``"jacobian"`` for the one-pass Jacobian, ``"tangent"``,
-          ``"adjoint"``, ``"jvp"`` for second derivatives; ``runs``: the batch it
+          run, ``"jacobian"`` for the one-pass Jacobian, ``"adjoint"``, ``"jvp"`` for
+          second derivatives; ``runs``: the batch it
           runs in, 1 for a single run; ``layout``: ``"array"`` or
           ``"scalarized"``; ``tiles``: ``(n, size)``; ``cuts``: fusion cuts on);
         - ``"derivative"``: how a run is differentiated (``strategy``:
           ``"one-pass Jacobian"``, ``"checkpointed jvp"`` (JAX's autodiff of the
-          checkpointed array program), ``"discrete adjoint"`` or ``"second
-          derivative"``; ``scalars``: the differentiated scalars; ``why``);
+          checkpointed array program), ``"checkpointed jvp, discrete adjoint"``
+          or ``"second derivative"``; ``scalars``: the differentiated scalars; ``why``);
           the strategies are `so3jax._engine.derivatives`' objects;
         - ``"tiles"``: a batch run in ``n`` tiles of ``size`` runs, one after the other;
         - ``"frames"``: a scalarized Jacobian program carrying ``rotations`` attitude

@@ -86,15 +86,14 @@ class Policy:
     #: scalarized program for batches of ``s`` runs or more (the array program, vmapped,
     #: below that) and cuts its fusion (CPU only) from ``c`` runs on. ``"scalar"`` and
     #: ``"array"`` are ``program="scalar"`` and ``"array"`` (benchmarks); ``"jvp"``: the
-    #: programs of second derivatives. Each entry is where the scalarized program pays
+    #: programs of second derivatives; a program without an entry (the discrete adjoint)
+    #: always runs the array program. Each entry is where the scalarized program pays
     #: for its longer compile within the calls a sweep or a `tune` makes, on a 2-core CPU
     #: with each loop one kernel; measured by ``benchmarks/layouts.py``.
     batched_layout: tuple = (
         ("run", (16, 16)),
         ("scalar", (1, 64)),
-        ("tangent", (16, 16)),
         ("jacobian", (16, 16)),
-        ("adjoint", (None, None)),
         ("array", (None, None)),
         ("jvp", (32, 32)),
     )
@@ -173,12 +172,12 @@ class Policy:
 
     def layout(self, what: str) -> tuple:
         """``(s, c)`` for program ``what`` on the default backend; ``(None, None)`` (the
-        array program always) with the ``"scalarize"`` pass off, ``c = None`` with
-        ``"cuts"`` off."""
+        array program always) for a program without an entry and with the ``"scalarize"``
+        pass off; ``c = None`` with ``"cuts"`` off."""
         table = dict(self.batched_layout)
         if jax.default_backend() == "gpu":
             table.update(self.gpu_layout)
-        s, c = table[what]
+        s, c = table.get(what, (None, None))
         if not self.on("scalarize"):
             return None, None
         return s, (c if self.on("cuts") else None)

@@ -3,8 +3,6 @@
 `Programs` extends the reference `so3jax._engine.loop.Loop` with:
 
 - the scalarized forward program (`fwd_scalar`, the ``"scalarize"`` pass's layout);
-- the tangent programs (forward mode over the leaves that can have a tangent,
-  `so3jax._engine.masks`), in both layouts;
 - the Jacobian programs (the primal once and ``n`` unit tangents batched over it, with
   attitude tangents as three numbers in the scalarized layout: the ``"frames"`` pass);
 - the discrete adjoint (a backward scan over checkpointed segments of ``jax.vjp`` of a
@@ -35,7 +33,6 @@ from .passes.frames import (
     FrameError,
     _dense_mask,
     _frame_flags,
-    _frame_observe,
     _frame_step,
     _from_frames,
     _jvp_with_frames,
@@ -62,9 +59,9 @@ class Programs(Loop):
         _, cN = sc.join(flat, jax.eval_shape(lambda: ex))
         return sc.join(ys, obs_struct, (self.n_save,)), cN
 
-    # ---------------- tangent (forward mode) ----------------
+    # ---------------- masked tangents ----------------
     #
-    # The tangent programs carry tangents for the masked float leaves only: ``mP``
+    # The Jacobian programs carry tangents for the masked float leaves only: ``mP``
     # flags the parameters being differentiated, ``mc`` the carry leaves whose
     # tangent can be nonzero (`_tangent_masks`). Every other leaf is held at its
     # primal value, so no operation pays for a tangent that is known to be zero.
@@ -95,14 +92,6 @@ class Programs(Loop):
             return P, c1, dP, dc1
         _, dc1, c1 = jax.jvp(g, (Pm, cm), (list(dP), list(dc)), has_aux=True)
         return P, c1, dP, dc1
-
-    def _tobs(self, mP, mc, x):
-        P, c, dP, dc = x
-        o, Pm, cm = self._masked(self.observe, mP, mc, P, c)
-        fr = _frame_flags(mc)
-        if any(fr):
-            return _frame_observe(o, Pm, cm, dP, dc, fr)
-        return jax.jvp(o, (Pm, cm), (list(dP), list(dc)))[1]
 
     def _obs_tangents(self, mP, mc, x) -> tuple[list, list]:
         """The observations after a state and their tangents as `frame_jvp` gives them
@@ -155,22 +144,6 @@ class Programs(Loop):
         return [
             _obs_tangent(o, t, k) for o, t, k in zip(outs, touts, mo, strict=True) if k != OBS_ZERO
         ]
-
-    def tan_array(self, mP, mc, P, c0, dP, dc0):
-        step = functools.partial(self._tstep, mP, mc)
-        x, dys = self._save_loop(step, functools.partial(self._tobs, mP, mc), (P, c0, dP, dc0))
-        return dys, x[3]
-
-    def tan_scalar(self, mP, mc, P, c0, dP, dc0, cut=None, batched=None, one=None):
-        ex = (P, c0, dP, dc0)
-        body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut)
-        tobs, tobs_struct = sc.flat_program(functools.partial(self._tobs, mP, mc), ex, cut)
-        flat = sc.split(ex)
-        if batched is not None:
-            flat = sc.settle_batched(body, flat, _component_flags(ex, batched), one)
-        flat, dys = _hoisted(functools.partial(self._save_loop, body, tobs), flat)
-        x = sc.join(flat, jax.eval_shape(lambda: ex))
-        return sc.join(dys, tobs_struct, (self.n_save,)), x[3]
 
     # ---------------- Jacobian (a few inputs: primal and columns in one pass) ----------------
 
@@ -286,36 +259,6 @@ class Programs(Loop):
         c1 = self.step(P, c)
         return jax.tree.map(lambda a, b: jnp.where(j < self.n, a, b), c1, c)
 
-    def _vjp_step(self, x):
-        """Cotangents through step ``j`` and the observation after it, accumulated.
-
-        ``x = (P, c_j, lam, acc, ct_obs, is_save, valid)``: ``lam`` is the
-        cotangent of the state after step ``j`` (from later steps), ``ct_obs``
-        the cotangent of the observation of that state (used where ``is_save``).
-        Returns the cotangent of ``c_j`` and ``acc`` plus the parameters' share.
-        """
-        P, c, lam, acc, ct_o, is_save, valid = x
-
-        def h(Pf, cf):
-            Pp = _with_floats(P, Pf)
-            c1 = self.step(Pp, _with_floats(c, cf))
-            return _floats(c1), self.observe(Pp, c1)
-
-        _, pull = jax.vjp(h, _floats(P), _floats(c))
-        ct_o = jax.tree.map(lambda a: a * is_save.astype(a.dtype), ct_o)
-        gP, gc = pull((lam, ct_o))
-        lam = [jnp.where(valid, g, l) for g, l in zip(gc, lam, strict=True)]
-        acc = [a + jnp.where(valid, g, jnp.zeros_like(g)) for a, g in zip(acc, gP, strict=True)]
-        return lam, acc
-
-    def _segment_cts(self, ct_obs, s):
-        """Observation cotangents for the steps of segment ``s`` (zero off save points)."""
-        j = s * self.K + jnp.arange(self.K)
-        m = (j + 1) // self.save_every - 1
-        is_save = ((j + 1) % self.save_every == 0) & (j < self.n)
-        m = jnp.clip(m, 0, self.n_save - 1)
-        return j, jax.tree.map(lambda a: a[m], ct_obs), is_save
-
     def _step_cts(self, ct_obs):
         """The observation cotangents per step, ``(S, K, ...)`` per leaf: a saved point's
         after the step that reaches it, zero after every other step and past the end."""
@@ -394,62 +337,6 @@ class Programs(Loop):
             (lam, acc), _ = jax.lax.scan(segment, carry0, xs, reverse=True)
         gP = _fill(mP, acc, [jnp.zeros_like(p) for p in pf])
         return gP, _fill(mc, lam, [jnp.zeros_like(c) for c in cf])
-
-    def adj_scalar(self, P, c0, ct_obs, ct_cN, cut=None):
-        K, S = self.K, self.S
-        j0 = jnp.zeros((), jnp.int32)
-        ex_step = (P, c0, j0)
-        mstep, _ = sc.flat_program(lambda x: (x[0], self._masked_step(*x), x[2] + 1), ex_step, cut)
-        nP = len(sc.split(P))
-        nc = len(sc.split(c0))
-
-        def advance_flat(fc, s, keep):
-            """K masked steps from the flat state ``fc``; the states before each if ``keep``."""
-            flat = sc.split(P) + fc + [jnp.asarray(s * K, jnp.int32)]
-
-            def one(f, _):
-                return mstep(f), (f[nP : nP + nc] if keep else None)
-
-            f, ys = jax.lax.scan(one, flat, None, length=K)
-            return f[nP : nP + nc], ys
-
-        def ckpt(fc, s):
-            return advance_flat(fc, s, False)[0], fc
-
-        _, ck_flat = jax.lax.scan(ckpt, sc.split(c0), jnp.arange(S))
-
-        lam0 = list(ct_cN)
-        acc0 = [jnp.zeros_like(p) for p in _floats(P)]
-        ct_o_ex = jax.tree.map(lambda a: a[0], ct_obs)
-        ex_back = (P, c0, lam0, acc0, ct_o_ex, jnp.array(True), jnp.array(True))
-        back_flat, _ = sc.flat_program(self._vjp_step, ex_back, cut)
-        n_lam = len(sc.split(lam0))
-        n_acc = len(sc.split(acc0))
-
-        def segment(carry, s_ck):
-            flam, facc = carry
-            s, fck = s_ck
-            _, states = advance_flat(list(fck), s, True)
-            j, cts, is_save = self._segment_cts(ct_obs, s)
-
-            def back(carry, x):
-                flam, facc = carry
-                fc, ct_o, sv, jj = x
-                flat = sc.split(P) + list(fc) + flam + facc + sc.split(ct_o) + [sv, jj < self.n]
-                out = back_flat(flat)
-                return (out[:n_lam], out[n_lam : n_lam + n_acc]), None
-
-            (flam, facc), _ = jax.lax.scan(
-                back, (flam, facc), (states, cts, is_save, j), reverse=True
-            )
-            return (flam, facc), None
-
-        (flam, facc), _ = jax.lax.scan(
-            segment, (sc.split(lam0), sc.split(acc0)), (jnp.arange(S), ck_flat), reverse=True
-        )
-        lam = sc.join(flam, jax.eval_shape(lambda: lam0))
-        acc = sc.join(facc, jax.eval_shape(lambda: acc0))
-        return acc, lam
 
 
 def _scalar_or_array(loop: Programs) -> Callable:

@@ -50,9 +50,7 @@ SMALL = policy.DEFAULT.replace(
     batched_layout={
         "run": (2, 2),
         "scalar": (1, 2),
-        "tangent": (2, 2),
         "jacobian": (2, 2),
-        "adjoint": (None, None),
         "array": (None, None),
         "jvp": (None, None),  # second derivatives: scalarized in tests/test_engine.py
     },

@@ -398,15 +398,6 @@ def _frame_step(g, Pm, cm, dP, dc, fr):
     return dc1, jax.tree.unflatten(treedef, outs)[1]
 
 
-def _frame_observe(o, Pm, cm, dP, dc, fr):
-    """`Programs._tobs`'s tangent of ``o`` with `Frame` carry tangents (dense outputs)."""
-    outs, touts, treedef = _jvp_with_frames(o, Pm, cm, dP, dc, fr)
-    tan = [
-        jnp.zeros_like(x) if t is None else dense(x, t) for x, t in zip(outs, touts, strict=True)
-    ]
-    return jax.tree.unflatten(treedef, tan)
-
-
 #: An observation's kind in the Jacobian programs (`Programs.obs_kinds`): no tangent (not
 #: computed; zeros outside), a dense one, or a `Frame` ``xi`` (right, left), three numbers
 #: per rotation that `_jacobian_jvp` turns dense after the loop.
