@@ -46,6 +46,8 @@ def test_batches(B):
     plan = so3jax.explain(jax.vmap(lambda R: so3jax.simulate(SC, M, 1e-2, N, R0=R)), R)
     threshold = _engine.policy.batched_layout("run")[0]
     assert _layouts(plan, "run") == [(B, "scalarized" if B >= threshold else "array")]
+    # what runs is the batch: no entry of the unbatched trace that `custom_vmap` also makes
+    assert all(e["runs"] == B for e in plan.of("hoisting")), plan
 
 
 def _mean_cost(B):

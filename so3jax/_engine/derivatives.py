@@ -174,7 +174,13 @@ class CheckpointedAdjoint(Strategy):
         real = list(nz)
         t_leaves, nz = _settle_carry_tangents(loop.step, primals, p_leaves, t_leaves, nz)
         P, c0 = primals
-        out = fwd(P, c0)
+        ck = None
+        if loop.S > 1 and loop.K % loop.save_every == 0:
+            # the run and the adjoint's checkpoints in one pass (array layout, as the
+            # adjoint): one forward pass fewer than the run and then `Programs.checkpoints`
+            out, ck = _dual(loop.fwd_segments, loop.fwd_segments, "adjoint")(P, c0)
+        else:
+            out = fwd(P, c0)
         out_nz = [_is_float(o) for o in jax.tree.leaves(out)]
         floats = [_is_float(x) for x in p_leaves]
         nz = [z and f for z, f in zip(nz, floats, strict=True)]
@@ -187,7 +193,8 @@ class CheckpointedAdjoint(Strategy):
 
         def adjoint(res, cts):  # cts: the float outputs' cotangents, None for symbolic zeros
             P, c0 = jax.tree.unflatten(treedef, res[1])
-            gP, gc = _adjoint_transpose(loop, mP, mc, P, c0, avals, cts[:n_ys], cts[n_ys:])
+            ck = res[2]
+            gP, gc = _adjoint_transpose(loop, mP, mc, P, c0, avals, cts[:n_ys], cts[n_ys:], ck)
             return _pick(nz, _fill(floats, gP + gc, [None] * len(floats)))
 
         # Forward mode (``jacfwd``, `so3jax.tune`'s default through a dozen gains) is JAX's
@@ -195,15 +202,18 @@ class CheckpointedAdjoint(Strategy):
         # scalars ran about as fast and compiled several times longer.
         plain = _float_tangent(loop.fwd_checkpointed, treedef, nz, out_nz)
         xs, ts = _pick(nz, p_leaves), _pick(nz, t_leaves)
-        tan = _linear_tangent(plain, plain, xs, p_leaves, ts, _pick(nz, real), adjoint=adjoint)
+        tan = _linear_tangent(
+            plain, plain, xs, p_leaves, ts, _pick(nz, real), adjoint=adjoint, extra=ck
+        )
         return out, _with_float0(out, out_nz, tan)
 
 
-def _adjoint_transpose(loop: Programs, mP, mc, P, c0, avals, ct_ys: list, ct_cN: list):
+def _adjoint_transpose(loop: Programs, mP, mc, P, c0, avals, ct_ys: list, ct_cN: list, ck):
     """``(gP, gc)``: the discrete adjoint (`Programs.adj_array`) at the cotangents ``ct_ys``
     (one per observation leaf) and ``ct_cN`` (one per float leaf of the final carry),
     where ``None`` is a symbolic zero: an observation the cost does not use is left out
-    of the backward pass. ``avals``: the shapes of the run's ``(ys, cN)``."""
+    of the backward pass. ``avals``: the shapes of the run's ``(ys, cN)``; ``ck``: the
+    segments' starting carries (`Programs.fwd_segments`), or ``None``."""
     keep = tuple(c is not None for c in ct_ys)
     kept = [c for c in ct_ys if c is not None]
     ct_cN = [
@@ -214,7 +224,7 @@ def _adjoint_transpose(loop: Programs, mP, mc, P, c0, avals, ct_ys: list, ct_cN:
     # operations) far more slowly than it runs it. Under ``vmap``, `_dual` batches it.
     adj = functools.partial(loop.adj_array, mP, mc, keep)
     adj = _dual(adj, adj, "adjoint")
-    gP, gc = adj(P, c0, kept, ct_cN)
+    gP, gc = adj(P, c0, kept, ct_cN, ck)
     return list(gP), list(gc)
 
 

@@ -94,6 +94,7 @@ def _dual(
             out = _dual_of(traced, scalar_fn, what, columns)(*args)
             if not _plan.noted_since(before, "layout"):
                 _plan.extend(pending)
+                _plan.extend(traced.pending)
                 _plan.note("layout", program=what, runs=1, layout="array")
             return out
 
@@ -167,9 +168,13 @@ class _Traced:
 
     def __init__(self, closed, out_tree):
         self.closed, self.out_tree = closed, out_tree
+        self.pending = None
 
     def __call__(self, *args):
-        return self._eval(jax.tree.leaves(args), None, None)
+        # The decisions of the unbatched program, which `custom_vmap` also traces when a
+        # batch then runs its rule instead: `_dual` keeps them only for an unbatched call.
+        with _plan.deferred() as self.pending:
+            return self._eval(jax.tree.leaves(args), None, None)
 
     def vmap(self, axis_size: int, in_batched, args):
         """``vmap`` of the program over ``args`` (batched per ``in_batched``, on axis 0)."""

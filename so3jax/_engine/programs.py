@@ -285,7 +285,31 @@ class Programs(Loop):
 
         return jax.lax.scan(advance, c0, jnp.arange(self.S))[1]
 
-    def adj_array(self, mP, mc, keep, P, c0, ct_obs, ct_cN):
+    def fwd_segments(self, P, c0):
+        """``((ys, cN), ck)``: `fwd_array`'s run and the carries at the start of each of the
+        ``S`` segments of ``K`` steps (`checkpoints`), in one pass: the discrete adjoint's
+        forward pass (`so3jax._engine.derivatives.CheckpointedAdjoint`). Needs ``K`` a
+        multiple of ``save_every``; the last segment is padded with blocks that leave the
+        carry alone."""
+        step, obs, m = self.step, self.observe, self.K // self.save_every
+        padded = self.S * m != self.n_save
+
+        def block(c, i):
+            c1 = step(P, c) if self.save_every == 1 else self._repeat(lambda c: step(P, c), c)
+            o = obs(P, c1)
+            if padded:
+                c1 = jax.tree.map(lambda a, b: jnp.where(i < self.n_save, a, b), c1, c)
+            return c1, o
+
+        def segment(c, s):
+            c1, ys = jax.lax.scan(block, c, s * m + jnp.arange(m))
+            return c1, (c, ys)
+
+        cN, (ck, ys) = jax.lax.scan(segment, c0, jnp.arange(self.S))
+        ys = jax.tree.map(lambda a: a.reshape((self.S * m,) + a.shape[2:])[: self.n_save], ys)
+        return (ys, cN), ck
+
+    def adj_array(self, mP, mc, keep, P, c0, ct_obs, ct_cN, ck=None):
         """The discrete adjoint: ``(gP, gc0)``, the cotangents of the float leaves of ``P``
         and ``c0`` given those of the observations and of the final carry.
 
@@ -293,7 +317,8 @@ class Programs(Loop):
         only (one flag per leaf): the others' are zero, and their part of the backward
         pass is left out. ``ct_cN``: one per float leaf of the final carry.
 
-        The carries at the segments' starts are computed first (`checkpoints`); then,
+        The carries at the segments' starts, ``ck``, come from the forward pass
+        (`fwd_segments`) or are computed first (`checkpoints`); then,
         last segment first, JAX's ``vjp`` of the segment's ``K`` steps and their
         observations, as a function of the float leaves flagged in ``mP`` and ``mc``
         (`_tangent_masks`) only: the others have a zero tangent, so no cotangent reaching
@@ -333,7 +358,8 @@ class Programs(Loop):
             # should have an explicit index").
             (lam, acc), _ = segment(carry0, (0, c0, jax.tree.map(lambda a: a[0], cts)))
         else:
-            xs = (jnp.arange(self.S), self.checkpoints(P, c0), cts)
+            ck = self.checkpoints(P, c0) if ck is None else ck
+            xs = (jnp.arange(self.S), ck, cts)
             (lam, acc), _ = jax.lax.scan(segment, carry0, xs, reverse=True)
         gP = _fill(mP, acc, [jnp.zeros_like(p) for p in pf])
         return gP, _fill(mc, lam, [jnp.zeros_like(c) for c in cf])

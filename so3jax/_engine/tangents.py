@@ -65,7 +65,15 @@ def _with_float0(out, out_nz: list, tan: list):
 
 
 def _linear_tangent(
-    plain: Callable, fast: Callable, xs, others, ts, real: list, max_columns=None, adjoint=None
+    plain: Callable,
+    fast: Callable,
+    xs,
+    others,
+    ts,
+    real: list,
+    max_columns=None,
+    adjoint=None,
+    extra=None,
 ):
     """``fast(xs, ts, others)``, linear in ``ts``, transposable and differentiable.
 
@@ -82,7 +90,8 @@ def _linear_tangent(
     if given, is the transpose whatever the number of scalars, with ``None`` for each
     cotangent that is a symbolic zero (`linear_call`'s ``symbolic_zeros``); a second
     derivative through it (reverse over reverse) differentiates JAX's transpose of
-    ``plain`` instead (`linear_call`'s ``differentiable``).
+    ``plain`` instead (`linear_call`'s ``differentiable``). ``extra``: residuals only
+    ``adjoint`` reads, as ``res[2]`` (the map does not depend on them).
     """
     shapes = [jax.ShapeDtypeStruct(jnp.shape(t), jnp.result_type(t)) for t in ts]
     n_real = sum(math.prod(s.shape) for s, r in zip(shapes, real, strict=True) if r)
@@ -101,12 +110,12 @@ def _linear_tangent(
         return plain(res[0], ts, res[1])
 
     @jax.custom_jvp
-    def tangent(xs, others, ts):
+    def tangent(xs, others, ts, extra):
         if adjoint is not None:
             return linear_call(
                 callee,
                 adjoint,
-                (xs, others),
+                (xs, others, extra),
                 ts,
                 symbolic_zeros=True,
                 differentiable=differentiable,
@@ -114,10 +123,10 @@ def _linear_tangent(
         return linear_call(callee, transpose, (xs, others), ts)
 
     def tangent_jvp(primals, tangents):
-        return _array_jvp(lambda xs, others, ts: plain(xs, ts, others), primals, tangents)
+        return _array_jvp(lambda xs, others, ts, _: plain(xs, ts, others), primals, tangents)
 
     tangent.defjvp(tangent_jvp, symbolic_zeros=True)
-    return tangent(xs, others, ts)
+    return tangent(xs, others, ts, extra)
 
 
 def forward_differentiated(fn: Callable) -> Callable:
