@@ -50,6 +50,7 @@ from ._quadrotor import (
     quadrotor_control as quadrotor_control,
     sweep_quadrotor as sweep_quadrotor,
 )
+from ._sensors import SensorNoise as SensorNoise
 from ._simulate import simulate as simulate
 from ._so3 import (
     adjoint as adjoint,
@@ -96,6 +97,7 @@ from ._tune import (
     tracking_cost as tracking_cost,
     tune as tune,
 )
+from ._wind import Gust as Gust
 
 # The public names (tests/test_docs.py checks that this matches the imports above and
 # that every name has an entry in the API reference, docs/api/).
@@ -142,6 +144,8 @@ __all__ = [
     "QuadrotorGains",
     "QuadrotorVehicle",
     "Rotors",
+    "Gust",
+    "SensorNoise",
     "quadrotor_control",
     "sweep_quadrotor",
     "Status",

@@ -10,12 +10,16 @@ from the four thrusts ``f_i`` (each along ``-b3``) as
     A = [[1, 1, 1, 1], [0, -d, 0, d], [d, 0, -d, 0], [-c, c, -c, c]].
 
 `Rotors` maps a commanded ``(f, M)`` to rotor thrusts by ``A^-1`` (in closed
-form), clips each to ``[thrust_min, thrust_max]``, and, with a time constant
-``tau``, lets the thrusts follow the clipped command with a first-order lag
-``tau f_i' = f_i,cmd - f_i``. The vehicle then feels ``A [f1, f2, f3, f4]``.
+form), clips each to ``[thrust_min, thrust_max]`` (or, with
+``allocation="yaw_last"``, first gives up yaw, then collective thrust, then roll
+and pitch), and, with a time constant ``tau``, lets the thrusts follow the command
+with a first-order lag ``tau f_i' = f_i,cmd - f_i``. The vehicle then feels
+``A [f1, f2, f3, f4]``.
 
 References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control of a
-quadrotor UAV on SE(3)", CDC 2010, eq. (1).
+quadrotor UAV on SE(3)", CDC 2010, eq. (1); E. J. J. Smeur, D. C. Hoeppener,
+C. De Wagter, "Prioritized control allocation for quadrotors subject to
+saturation", IMAV 2017 (the priority order of ``"yaw_last"``).
 """
 
 from __future__ import annotations
@@ -42,15 +46,52 @@ def _concrete(a: Array) -> float | None:
     return float(np.asarray(a)) if _is_concrete(a) else None
 
 
+#: The allocation policies of `Rotors`.
+ALLOCATIONS = ("clip", "yaw_last")
+
+
 class Rotors(eqx.Module):
     """Four rotors in the '+' layout of Lee, Leok & McClamroch: allocation, limits, lag.
 
     ``[f, M] = A [f1, f2, f3, f4]`` with
     ``A = [[1, 1, 1, 1], [0, -d, 0, d], [d, 0, -d, 0], [-c, c, -c, c]]``;
-    a commanded ``(f, M)`` becomes the rotor commands
-    ``f_i,cmd = clip((A^-1 [f, M])_i, thrust_min, thrust_max)``. Without a time
+    a commanded ``(f, M)`` becomes four rotor commands ``f_i,cmd`` within
+    ``[thrust_min, thrust_max]`` by the `allocation` policy. Without a time
     constant the rotors produce their commands at once; with ``tau`` their thrusts
     are state and follow ``tau f_i' = f_i,cmd - f_i``.
+
+    **Allocation policies** (``lo``, ``hi`` the thrust limits):
+
+    - ``"clip"`` (the default): ``f_i,cmd = clip((A^-1 [f, M])_i, lo, hi)``, rotor
+      by rotor. A rotor at its limit takes thrust, roll, pitch and yaw with it
+      alike; with a small ``c`` (Lee et al.'s ``c = 8e-4`` m) a modest yaw moment
+      alone drives every rotor to a limit.
+    - ``"yaw_last"``: roll and pitch first, then the collective thrust, then yaw:
+      the priority order Smeur, Hoeppener & De Wagter propose for quadrotors,
+      here applied in sequence and in closed form (not by their weighted least
+      squares). With ``a = M2 / (2d)``, ``b = M1 / (2d)``, ``y = M3 / (4c)``
+      (so that ``A^-1 [f, M] = f/4 + (a - y, -b + y, -a - y, b + y)``):
+
+      1. Roll and pitch: ``m = max(|a|, |b|)``. Where even they do not fit
+         (``2 m > hi - lo``), ``a`` and ``b`` are scaled by ``(hi - lo) / (2 m)``
+         (the torque direction kept) and ``m`` becomes ``(hi - lo) / 2``.
+      2. Collective thrust: ``q = clip(f/4, lo + m, hi - m)``; the thrusts
+         ``g = (q + a, q - b, q - a, q + b)``, which give ``(4q, M1, M2, 0)``, are
+         within bounds.
+      3. Yaw: ``y' = clip(y, -H_-, H_+)`` with the headroom
+         ``H_+ = min(g1 - lo, g3 - lo, hi - g2, hi - g4)`` and
+         ``H_- = min(hi - g1, hi - g3, g2 - lo, g4 - lo)``. That is ``y' = k y``
+         with ``k`` in ``[0, 1]`` the largest fraction of the commanded yaw moment
+         that keeps every rotor within bounds with ``f``, ``M1``, ``M2`` held.
+      4. ``f_i,cmd = clip(g_i + s_i y', lo, hi)``, ``s = (-1, 1, -1, 1)`` (this
+         last clip only removes round-off).
+
+      Where no limit is reached the result is exactly ``A^-1 [f, M]``; where
+      roll and pitch fit they are applied exactly. The collective thrust is
+      clipped with the yaw moment at zero, and yaw is only reduced toward zero,
+      never used to help the thrust. The policy is piecewise linear in
+      ``(f, M)``: it runs under `jit` and `vmap`, and its derivatives are finite
+      everywhere.
 
     **Arguments:**
 
@@ -63,12 +104,17 @@ class Rotors(eqx.Module):
       for no upper limit), shape `()`.
     - `time_constant`: ``tau`` in s (> 0) of the first-order lag of each rotor's
       thrust, or ``None`` (thrust follows the command at once).
+    - `allocation`: ``"clip"`` (default) or ``"yaw_last"``, see above.
 
-    Bad shapes raise ``ValueError`` naming the argument; so do bad values when they
-    are concrete (under `jit`/`vmap` they are not checked).
+    Bad shapes and an unknown `allocation` raise ``ValueError`` naming the
+    argument; so do bad values when they are concrete (under `jit`/`vmap` they are
+    not checked).
 
     References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control
-    of a quadrotor UAV on SE(3)", CDC 2010, eq. (1).
+    of a quadrotor UAV on SE(3)", CDC 2010, eq. (1); E. J. J. Smeur,
+    D. C. Hoeppener, C. De Wagter, "Prioritized control allocation for quadrotors
+    subject to saturation", IMAV 2017 (``"yaw_last"``: roll and pitch, then
+    thrust, then yaw).
     """
 
     arm: Array
@@ -76,6 +122,7 @@ class Rotors(eqx.Module):
     thrust_min: Array
     thrust_max: Array
     time_constant: Array | None
+    allocation: str = eqx.field(static=True)
 
     __repr__ = module_repr
 
@@ -86,7 +133,13 @@ class Rotors(eqx.Module):
         thrust_min: ArrayLike = 0.0,
         thrust_max: ArrayLike = math.inf,
         time_constant: ArrayLike | None = None,
+        allocation: str = "clip",
     ):
+        if not (isinstance(allocation, str) and allocation in ALLOCATIONS):
+            raise ValueError(
+                f"allocation must be one of {', '.join(map(repr, ALLOCATIONS))}, got {allocation!r}"
+            )
+        self.allocation = allocation
         self.arm = _scalar(arm, "arm")
         self.torque_coefficient = _scalar(torque_coefficient, "torque_coefficient")
         self.thrust_min = _scalar(thrust_min, "thrust_min")
@@ -145,11 +198,44 @@ class Rotors(eqx.Module):
         return jnp.stack([q + m2 - m3, q - m1 + m3, q - m2 - m3, q + m1 + m3], -1)
 
     def command(self, f: Array, M: Array) -> Array:
-        """The rotor commands: ``A^-1 [f, M]`` clipped to ``[thrust_min, thrust_max]``.
+        """The rotor commands for ``(f, M)``, within ``[thrust_min, thrust_max]``.
 
-        **Returns:** shape `(..., 4)`, in N.
+        ``"clip"``: ``A^-1 [f, M]`` clipped rotor by rotor; ``"yaw_last"``: roll and
+        pitch, then thrust, then yaw (see `Rotors`).
+
+        **Arguments:**
+
+        - `f`: total thrust in N, shape `(...)`.
+        - `M`: body moment in N m, shape `(..., 3)`.
+
+        **Returns:** the four commands in N, shape `(..., 4)`.
         """
+        if self.allocation == "yaw_last":
+            return self._yaw_last(f, M)
         return jnp.clip(self.allocate(f, M), self.thrust_min, self.thrust_max)
+
+    def _yaw_last(self, f: Array, M: Array) -> Array:
+        """The ``"yaw_last"`` policy, steps 1-4 of `Rotors`' docstring."""
+        lo, hi = self.thrust_min, self.thrust_max
+        a = M[..., 1] / (2.0 * self.arm)
+        b = M[..., 0] / (2.0 * self.arm)
+        y = M[..., 2] / (4.0 * self.torque_coefficient)
+        # 1. roll and pitch, scaled down (direction kept) where even they do not fit
+        half = 0.5 * (hi - lo)
+        m = jnp.maximum(jnp.abs(a), jnp.abs(b))
+        over = m > half  # false where hi is inf; then m > 0 where true
+        scale = jnp.where(over, half / jnp.where(over, m, 1.0), 1.0)
+        a, b, m = a * scale, b * scale, jnp.minimum(m, half)
+        # 2. the collective thrust, clipped so that roll and pitch fit
+        q = jnp.clip(0.25 * f, lo + m, hi - m)
+        g1, g2, g3, g4 = q + a, q - b, q - a, q + b
+        # 3. yaw, clipped to the headroom of every rotor in the direction it moves
+        up = jnp.maximum(jnp.minimum(jnp.minimum(g1, g3) - lo, hi - jnp.maximum(g2, g4)), 0.0)
+        down = jnp.maximum(jnp.minimum(hi - jnp.maximum(g1, g3), jnp.minimum(g2, g4) - lo), 0.0)
+        y = jnp.clip(y, -down, up)
+        # 4. thrusts (the clip removes round-off only)
+        thrusts = jnp.stack([g1 - y, g2 + y, g3 - y, g4 + y], -1)
+        return jnp.clip(thrusts, lo, hi)
 
     def wrench(self, thrusts: Array) -> tuple[Array, Array]:
         """``(f, M) = A [f1, f2, f3, f4]``: total thrust `(...)` and body moment `(..., 3)`."""

@@ -24,8 +24,17 @@ def _grid_axes(result):
     return result.k_R[:: result.grid_shape[1]], result.k_Omega[: result.grid_shape[1]]
 
 
-def sweep_heatmaps(result):
-    """Heat maps over ``(k_R, k_Omega)``: settling time, failures, and the stable step.
+def sweep_heatmaps(result, x: str = "k_Omega", y: str = "k_R"):
+    """Heat maps over two axes: settling time, failures, and the stable step.
+
+    By default the axes are the gains, ``(k_Omega, k_R)``; either may instead be a
+    parameter the sweep varied (``sweep(params=...)``: ``thrust_to_weight``,
+    ``time_constant``, ``max_torque``, ...), labelled with its unit
+    (`so3jax._sweep_params.PARAM_LABELS`). A parameter with one value per column is
+    used as it is; a 3-vector by its entry when its three entries are equal, by its
+    norm (``|...|``) otherwise. Each cell pools the runs with its two values (over
+    the gains, attitudes and other parameters not on the axes; the title names
+    those that vary).
 
     Left: median settling time. Two kinds of cells have no median time and are
     drawn as their own classes, outside the colour scale, each with a legend
@@ -35,59 +44,206 @@ def sweep_heatmaps(result):
     (diverged or unresolved) are grey. Middle: the fraction of runs that did not
     settle for any reason (`SweepResult.not_settled_fraction`); cells marked
     ``x`` hold runs whose closed loop diverged, ``o`` runs that failed only
-    numerically (resolved at a smaller step), ``?`` unresolved runs. Right: the
-    largest step known to be stable for each cell (`so3jax.stable_dt`), with the
-    cells past the sweep's ``dt`` outlined: there the runs were re-run at smaller
-    steps. A quadrotor sweep with sampled control has no step limit: its right
-    panel is the median final position error instead.
+    numerically (resolved at a smaller step), ``?`` unresolved runs. Right, over
+    the gains: the largest step known to be stable for each cell
+    (`so3jax.stable_dt`), with the cells past the sweep's ``dt`` outlined: there
+    the runs were re-run at smaller steps. A quadrotor sweep with no step limit
+    (sampled control), or any map with a parameter axis, shows instead the median
+    final position error of a quadrotor or the mean cost of an attitude scene.
 
     **Arguments:**
 
-    - `result`: a `SweepResult` of a grid sweep.
+    - `result`: a `SweepResult` (of a grid sweep when both axes are gains).
+    - `x`, `y`: the horizontal and vertical axes: ``"k_R"``, ``"k_Omega"`` or the
+      name of a swept parameter (a key of `SweepResult.params`).
 
     **Returns:** a `Figure` with three panels.
     """
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import ListedColormap, LogNorm
-    from matplotlib.patches import Patch
+    if (x, y) == ("k_Omega", "k_R"):
+        cells = _gain_cells(result)
+    else:
+        cells = _axis_cells(result, x, y)
+    return _draw_heatmaps(result, cells)
 
+
+def _gain_cells(result) -> dict:
+    """The cells of a grid sweep over ``(k_Omega, k_R)``: one per gain pair."""
     kR, kO = _grid_axes(result)
-    med = result.as_grid(result.median_settling_time)
-    fail = result.as_grid(result.not_settled_fraction)
-    horizon = result.dt * result.n_steps
-    unsettled = np.isinf(med)  # its own class below, not the top of the colour scale
-    med_shown = np.where(unsettled, np.nan, med)
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6), constrained_layout=True)
     stable = result.as_grid(result.stable_dt)
     finite = np.isfinite(stable)
     lo = float(np.min(stable[finite])) if finite.any() else result.dt / 2
     hi = float(np.max(stable[finite])) if finite.any() else result.dt * 2
     lo, hi = min(lo, result.dt) * 0.9, max(hi, result.dt) * 1.1
-    right = (stable, "largest stable dt (s), linearised", "cividis", dict(norm=LogNorm(lo, hi)))
+    right = (stable, "largest stable dt (s), linearised", "cividis", dict(norm=_log_norm(lo, hi)))
     if not finite.any() and "final_position_error" in result.metrics:
         err = result._masked(result.metrics["final_position_error"])
         err = result.as_grid(_nan_reduce(np.nanmedian, err))
         right = (err, "median final |e_x| (m)", "cividis", {})
+    marks = {
+        name: result.as_grid(flag.any(axis=1))
+        for name, flag in (
+            ("diverged", result.diverged),
+            ("numerical", result.numerical),
+            ("unresolved", result.unresolved),
+        )
+    }
+    b = result.best()
+    limit = (
+        f"dt <= {result.dt_stable_all:.3g} is stable for every cell"
+        if finite.any()
+        else "no step limit (feedback held over each step)"
+    )
+    return {
+        "x": kO,
+        "y": kR,
+        "xlabel": "k_Omega",
+        "ylabel": "k_R",
+        "median": result.as_grid(result.median_settling_time),
+        "not_settled": result.as_grid(result.not_settled_fraction),
+        "right": right,
+        "marks": marks,
+        "beyond": result.as_grid(result.dt > result.stable_dt),
+        "best": (result.k_Omega[b], result.k_R[b]),
+        "per_cell": f"{result.R0.shape[0]} random attitudes per cell",
+        "limit": limit,
+        "pooled": _pooled(result, ("k_R", "k_Omega")),
+    }
+
+
+def _log_norm(lo, hi):
+    from matplotlib.colors import LogNorm
+
+    return LogNorm(lo, hi)
+
+
+def _axis_values(result, name: str) -> tuple[np.ndarray, str]:
+    """Per-run values `(G, N)` of a heat-map axis (a gain or a swept parameter), and its label."""
+    from ._sweep_params import PARAM_LABELS
+
+    G, N = result.cost.shape
+    if name in ("k_R", "k_Omega"):
+        k = np.asarray(getattr(result, name), float).reshape(G, -1)
+        v, norm = _one_number(k)
+        label = f"|{name}|" if norm else name
+        return np.broadcast_to(v[:, None], (G, N)), label
+    if name not in result.params:
+        swept = ", ".join(repr(p) for p in result.params) or "none"
+        raise ValueError(
+            f"x and y must be 'k_R', 'k_Omega' or a parameter the sweep varied ({swept}), "
+            f"got {name!r}"
+        )
+    v, norm = _one_number(np.asarray(result.params[name], float).reshape(N, -1))
+    text, unit = PARAM_LABELS.get(name, (name, ""))
+    label = (f"|{text}|" if norm else text) + (f" ({unit})" if unit else "")
+    return np.broadcast_to(v[None, :], (G, N)), label
+
+
+def _one_number(a: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Rows of ``a`` `(n, k)` as one number each: the entry if a row's entries are all
+    equal in every row, else the norm (then ``True``)."""
+    if np.all(a == a[:, :1]):
+        return a[:, 0], False
+    return np.linalg.norm(a, axis=1), True
+
+
+def _axis_cells(result, x: str, y: str) -> dict:
+    """The cells over two axes of which one at least is a parameter: the runs pooled by value."""
+    if x == y:
+        raise ValueError(f"x and y must differ, both are {x!r}")
+    xv, xlabel = _axis_values(result, x)
+    yv, ylabel = _axis_values(result, y)
+    xs, ix = np.unique(xv, return_inverse=True)
+    ys, iy = np.unique(yv, return_inverse=True)
+    ix, iy = ix.reshape(xv.shape), iy.reshape(yv.shape)
+    shape = (ys.size, xs.size)
+    median, not_settled, right = (np.full(shape, np.nan) for _ in range(3))
+    marks = {k: np.zeros(shape, bool) for k in ("diverged", "numerical", "unresolved")}
+    quad = "final_position_error" in result.metrics
+    value = result.metrics["final_position_error"] if quad else result.cost
+    for a in range(ys.size):
+        for b in range(xs.size):
+            cell = (iy == a) & (ix == b)
+            if not cell.any():
+                continue
+            kept = cell & ~result.failed
+            if kept.any():
+                median[a, b] = np.median(result.settling_time[kept])
+                right[a, b] = (np.median if quad else np.mean)(value[kept])
+            not_settled[a, b] = 1.0 - result.settled[cell].mean()
+            for k in marks:
+                marks[k][a, b] = getattr(result, k)[cell].any()
+    title = "median final |e_x| (m)" if quad else "mean cost"
+    G, N = result.cost.shape
+    st = result.dt_stable_all
+    if np.isfinite(st):
+        limit = f"dt <= {st:.3g} is stable for every run"
+    else:
+        limit = "no step limit (feedback held over each step)" if st > 0 else "no known step limit"
+    return {
+        "x": xs,
+        "y": ys,
+        "xlabel": xlabel,
+        "ylabel": ylabel,
+        "median": median,
+        "not_settled": not_settled,
+        "right": (right, title, "cividis", {}),
+        "marks": marks,
+        "beyond": None,
+        "best": None,
+        "per_cell": f"{G * N} runs pooled in {ys.size} x {xs.size} cells",
+        "limit": limit,
+        "pooled": _pooled(result, (x, y)),
+    }
+
+
+def _pooled(result, axes) -> str:
+    """``"; pooled over ..."``: the gains and parameters that vary but are not on the axes."""
+    from ._sweep_params import PARAM_LABELS
+
+    names = []
+    for name in ("k_R", "k_Omega"):
+        n = np.unique(np.asarray(getattr(result, name)), axis=0).shape[0]
+        if name not in axes and n > 1:
+            names.append(f"{name} ({n} values)")
+    for name, col in result.params.items():
+        n = np.unique(np.asarray(col).reshape(col.shape[0], -1), axis=0).shape[0]
+        if name not in axes and n > 1:
+            text, unit = PARAM_LABELS.get(name, (name, ""))
+            names.append(f"{text}{f' ({unit})' if unit else ''}: {n} values")
+    return "; pooled over " + ", ".join(names) if names else ""
+
+
+def _draw_heatmaps(result, cells: dict):
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
+    xs, ys = cells["x"], cells["y"]
+    med = cells["median"]
+    horizon = result.dt * result.n_steps
+    unsettled = np.isinf(med)  # its own class below, not the top of the colour scale
+    med_shown = np.where(unsettled, np.nan, med)
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6), constrained_layout=True)
     panels = (
         (med_shown, "median settling time (s)", "viridis", dict(vmin=0.0, vmax=horizon)),
-        (fail, "fraction not settled (any reason)", "magma", dict(vmin=0.0, vmax=1.0)),
-        right,
+        (cells["not_settled"], "fraction not settled (any reason)", "magma", dict(vmin=0, vmax=1)),
+        cells["right"],
     )
     for ax, (val, title, cmap, scale) in zip(axes, panels, strict=True):
         cm = plt.get_cmap(cmap).with_extremes(bad="0.75")
-        m = ax.pcolormesh(_edges(kO), _edges(kR), np.ma.masked_invalid(val), cmap=cm, **scale)
+        m = ax.pcolormesh(_edges(xs), _edges(ys), np.ma.masked_invalid(val), cmap=cm, **scale)
         fig.colorbar(m, ax=ax)
-        ax.set_xscale("log" if _is_geometric(kO) else "linear")
-        ax.set_yscale("log" if _is_geometric(kR) else "linear")
-        ax.set_xlabel("k_Omega")
-        ax.set_ylabel("k_R")
+        ax.set_xscale("log" if _is_geometric(xs) else "linear")
+        ax.set_yscale("log" if _is_geometric(ys) else "linear")
+        ax.set_xlabel(cells["xlabel"])
+        ax.set_ylabel(cells["ylabel"])
         ax.set_title(title, fontsize=10)
     hatch = dict(facecolor="white", hatch="//", edgecolor="0.35")
     if unsettled.any():
         # pcolor (a PolyCollection) draws hatching and only the cells not masked.
         axes[0].pcolor(
-            _edges(kO),
-            _edges(kR),
+            _edges(xs),
+            _edges(ys),
             np.ma.masked_where(~unsettled, np.zeros(unsettled.shape)),
             cmap=ListedColormap([hatch["facecolor"]]),
             hatch=hatch["hatch"],
@@ -95,18 +251,18 @@ def sweep_heatmaps(result):
             linewidth=0.0,
             label=UNSETTLED_LABEL,
         )
-    KO, KR = np.meshgrid(kO, kR)
+    X, Y = np.meshgrid(xs, ys)
     marks = (
-        (result.diverged, "x", "r", "closed loop diverged"),
-        (result.numerical, "o", "c", "numerical (resolved at smaller dt)"),
-        (result.unresolved, "$?$", "y", "unresolved"),
+        ("diverged", "x", "r", "closed loop diverged"),
+        ("numerical", "o", "c", "numerical (resolved at smaller dt)"),
+        ("unresolved", "$?$", "y", "unresolved"),
     )
-    for flag, marker, color, label in marks:
-        cells = result.as_grid(flag.any(axis=1))
-        if cells.any():
+    for name, marker, color, label in marks:
+        flagged = cells["marks"][name]
+        if flagged.any():
             axes[1].scatter(
-                KO[cells],
-                KR[cells],
+                X[flagged],
+                Y[flagged],
                 marker=marker,
                 s=28,
                 # "x" and "?" are unfilled markers: they take one colour, no edge.
@@ -114,11 +270,11 @@ def sweep_heatmaps(result):
                 linewidths=1.2,
                 label=label,
             )
-    beyond = result.as_grid(result.dt > result.stable_dt)
-    if beyond.any():
+    beyond = cells["beyond"]
+    if beyond is not None and beyond.any():
         axes[2].scatter(
-            KO[beyond],
-            KR[beyond],
+            X[beyond],
+            Y[beyond],
             marker="s",
             s=30,
             facecolors="none",
@@ -126,31 +282,28 @@ def sweep_heatmaps(result):
             label=f"dt = {result.dt:g} past the limit",
         )
         axes[2].legend(loc="lower right", fontsize=7)
-    b = result.best()
-    for ax in axes[:2]:
-        ax.plot(result.k_Omega[b], result.k_R[b], "w*", ms=12, mec="k", label="lowest mean cost")
+    if cells["best"] is not None:
+        bx, by = cells["best"]
+        for ax in axes[:2]:
+            ax.plot(bx, by, "w*", ms=12, mec="k", label="lowest mean cost")
     handles, labels = axes[0].get_legend_handles_labels()
     if unsettled.any():  # the legend draws a collection by its colour map: a patch shows the hatch
         handles[labels.index(UNSETTLED_LABEL)] = Patch(**hatch, label=UNSETTLED_LABEL)
     if np.isnan(med).any():
         handles.append(Patch(facecolor="0.75", label=FAILED_LABEL))
         labels.append(FAILED_LABEL)
-    axes[0].legend(handles, labels, loc="lower right", fontsize=8)
-    axes[1].legend(loc="upper left", fontsize=7)
-    n = result.R0.shape[0]
+    if handles:
+        axes[0].legend(handles, labels, loc="lower right", fontsize=8)
+    if axes[1].get_legend_handles_labels()[0]:
+        axes[1].legend(loc="upper left", fontsize=7)
     c = result.outcome_counts()
     settle = f"Psi < {result.threshold:g}"
     if result.position_threshold is not None:
         settle += f" and |e_x| < {result.position_threshold:g} m"
-    limit = (
-        f"dt <= {result.dt_stable_all:.3g} is stable for every cell"
-        if finite.any()
-        else "no step limit (feedback held over each step)"
-    )
     fig.suptitle(
-        f"{n} random attitudes per cell, horizon {horizon:g} s, {settle}, "
+        f"{cells['per_cell']}, horizon {horizon:g} s, {settle}, "
         f"dt = {result.dt:g}: {c['numerical']} runs numerical, {c['diverged']} diverged, "
-        f"{c['unresolved']} unresolved; {limit}",
+        f"{c['unresolved']} unresolved; {cells['limit']}{cells['pooled']}",
         fontsize=10,
     )
     return fig

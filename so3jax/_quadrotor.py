@@ -54,6 +54,7 @@ from ._dynamics import RigidBody
 from ._repr import module_repr
 from ._scene import Scene, check_rotation
 from ._scenes import _as_body, _cast_floats, _check_reference, _steps_per_hold
+from ._sensors import SensorNoise, check_noise
 from ._so3 import _as_float, _cross, _dot, _is_concrete, _mm, _mT, _mv, _to_dtype, _vee
 from ._state import LieState, LieTangent
 from ._trajectory import COMMAND_UNDEFINED, OK
@@ -77,13 +78,30 @@ RECOVERY_R0 = ((1.0, 0.0, 0.0), (0.0, -0.9995, -0.0314), (0.0, 0.0314, -0.9995))
 
 
 class QuadrotorGains(eqx.Module):
-    """Gains of Lee's quadrotor controller: position, velocity, attitude, rate.
+    """Gains of Lee's quadrotor controller: position, velocity, attitude, rate, integrals.
 
-    ``A = -k_x e_x - k_v e_v - m g e3 + m x_d''``,
-    ``M = -k_R e_R - k_Omega e_Omega + ...``. Each gain is a scalar or a
-    3-vector (one value per axis: inertial axes for ``k_x``, ``k_v``, body axes
-    for ``k_R``, ``k_Omega``). The fields are arrays: `jax.grad` with respect to
-    a `QuadrotorGains` works, and ``jax.vmap(QuadrotorGains)(...)`` builds a batch.
+    ``A = -k_x e_x - k_v e_v - k_i sat(e_i) - m g e3 + m x_d''``,
+    ``M = -k_R e_R - k_Omega e_Omega - k_I sat(e_I) + ...``. Each gain is a
+    scalar or a 3-vector (one value per axis: inertial axes for ``k_x``, ``k_v``,
+    ``k_i``, body axes for ``k_R``, ``k_Omega``, ``k_I``). The fields are arrays:
+    `jax.grad` with respect to a `QuadrotorGains` works, and
+    ``jax.vmap(QuadrotorGains)(...)`` builds a batch.
+
+    **Integral action** (off by default) follows Goodarzi, Lee & Lee (ECC 2013):
+    a position integral ``e_i`` and an attitude integral ``e_I`` with
+
+        e_i' = e_v + c1 e_x,      e_I' = e_Omega + c2 e_R,
+
+    entering the controller through the saturation ``sat(e) = clip(e, -sigma,
+    sigma)`` (per axis; their ``sat_sigma``). Their derivative enters ``A'`` and
+    ``A''`` (``-k_i sat(e_i)'``, ``-k_i sat(e_i)''`` with ``e_i'' = e_v' + c1
+    e_v``), so ``Omega_c`` and ``dOmega_c`` stay the rates of ``Rc``. The clamp is
+    also an anti-windup: the integrals themselves stay in ``[-sigma, sigma]``, as
+    in the FDCL's uav_simulator (fdcl-gwu), which clamps its integral state. With
+    ``k_i = k_I = 0`` (concrete zeros, the default) the six integral fields are
+    ``None`` and the controller is Lee's, the same program as without them; a
+    `quadrotor` scene built with nonzero (or traced) ``k_i``, ``k_I`` carries the
+    integrals in its state (see `quadrotor`).
 
     **Arguments:**
 
@@ -91,25 +109,84 @@ class QuadrotorGains(eqx.Module):
     - `k_v`: velocity gain (>= 0, finite), shape `()` or `(3,)`.
     - `k_R`: attitude gain (>= 0, finite), shape `()` or `(3,)`.
     - `k_Omega`: body-rate gain (>= 0, finite), shape `()` or `(3,)`.
+    - `k_i`: position integral gain in N/m (>= 0, finite), shape `()` or `(3,)`.
+    - `k_I`: attitude integral gain in N m/rad (>= 0, finite), shape `()` or `(3,)`.
+    - `c1`: weight of ``e_x`` in ``e_i'``, in 1/s (>= 0, finite), shape `()`.
+    - `c2`: weight of ``e_R`` in ``e_I'``, in 1/s (>= 0, finite), shape `()`.
+    - `sigma_i`: clamp of ``e_i`` in m (> 0; ``inf``: none), shape `()` or `(3,)`.
+    - `sigma_I`: clamp of ``e_I`` in rad (> 0; ``inf``: none), shape `()` or `(3,)`.
 
-    Negative or non-finite gains raise ``ValueError`` when the values are
-    concrete (under `jit`/`vmap` they are not checked).
+    Negative or non-finite gains (and clamps that are not positive) raise
+    ``ValueError`` naming the argument when the values are concrete (under
+    `jit`/`vmap` they are not checked).
 
-    References: T. Lee, M. Leok, N. H. McClamroch, CDC 2010, eqs. (12), (16).
+    References: T. Lee, M. Leok, N. H. McClamroch, CDC 2010, eqs. (12), (16);
+    F. Goodarzi, D. Lee, T. Lee, "Geometric nonlinear PID control of a quadrotor
+    UAV on SE(3)", ECC 2013 (the integral terms ``e_i``, ``e_I`` and ``sat_sigma``).
     """
 
     k_x: Array
     k_v: Array
     k_R: Array
     k_Omega: Array
+    k_i: Array | None = None
+    k_I: Array | None = None
+    c1: Array | None = None
+    c2: Array | None = None
+    sigma_i: Array | None = None
+    sigma_I: Array | None = None
 
     __repr__ = module_repr
 
-    def __init__(self, k_x: ArrayLike, k_v: ArrayLike, k_R: ArrayLike, k_Omega: ArrayLike):
+    def __init__(
+        self,
+        k_x: ArrayLike,
+        k_v: ArrayLike,
+        k_R: ArrayLike,
+        k_Omega: ArrayLike,
+        k_i: ArrayLike = 0.0,
+        k_I: ArrayLike = 0.0,
+        c1: ArrayLike = 1.0,
+        c2: ArrayLike = 1.0,
+        sigma_i: ArrayLike = 1.0,
+        sigma_I: ArrayLike = 1.0,
+    ):
         self.k_x = _check_gain(k_x, "QuadrotorGains.k_x")
         self.k_v = _check_gain(k_v, "QuadrotorGains.k_v")
         self.k_R = _check_gain(k_R, "QuadrotorGains.k_R")
         self.k_Omega = _check_gain(k_Omega, "QuadrotorGains.k_Omega")
+        off = _is_zero(k_i) and _is_zero(k_I)  # before conversion: under jit it stages
+        k_i = _check_gain(k_i, "QuadrotorGains.k_i")
+        k_I = _check_gain(k_I, "QuadrotorGains.k_I")
+        c1 = _check_scalar(c1, "QuadrotorGains.c1", positive=False)
+        c2 = _check_scalar(c2, "QuadrotorGains.c2", positive=False)
+        sigma_i = _check_clamp(sigma_i, "QuadrotorGains.sigma_i")
+        sigma_I = _check_clamp(sigma_I, "QuadrotorGains.sigma_I")
+        if not off:
+            self.k_i, self.k_I, self.c1, self.c2 = k_i, k_I, c1, c2
+            self.sigma_i, self.sigma_I = sigma_i, sigma_I
+
+    @property
+    def integral(self) -> bool:
+        """Whether the gains have integral action (``k_i``, ``k_I`` not both zero)."""
+        return self.k_i is not None
+
+
+def _is_zero(k) -> bool:
+    """``k`` (as given) is concrete and zero (a traced gain counts as nonzero: it may be)."""
+    return _is_concrete(k) and not np.any(np.asarray(k))
+
+
+def _check_clamp(value, name: str) -> Array:
+    """A clamp ``sigma > 0`` (``inf`` allowed: no clamp), shape `()` or `(3,)`."""
+    s = _as_float(value)
+    if s.shape not in ((), (3,)):
+        raise ValueError(f"{name} must be a scalar or a 3-vector, got shape {s.shape}")
+    if _is_concrete(s):
+        sn = np.asarray(s, dtype=np.float64)
+        if np.any(np.isnan(sn)) or np.any(sn <= 0):
+            raise ValueError(f"{name} must be positive (inf: no clamp), got {sn}")
+    return s
 
 
 class QuadrotorVehicle(eqx.Module):
@@ -244,6 +321,8 @@ def quadrotor_control(
     R: Array,
     Omega: Array,
     reference: Callable,
+    e_i: Array | None = None,
+    e_I: Array | None = None,
 ) -> QuadrotorControl:
     """Lee's geometric tracking controller on SE(3), as a pure function.
 
@@ -274,6 +353,13 @@ def quadrotor_control(
       `jax.jvp` of the map ``(A, b1_d) -> Rc``, which we used at first and
       which agrees to round-off; this is the controller's inner loop).
 
+    With integral action (``gains.integral``; Goodarzi, Lee & Lee, ECC 2013),
+    ``A`` gains ``-k_i sat(e_i)``, ``A'`` gains ``-k_i sat(e_i)'`` with
+    ``sat(e_i)' = e_v + c1 e_x`` where ``|e_i| < sigma_i`` (0 where clamped),
+    ``A''`` gains ``-k_i sat(e_i)''`` with ``sat(e_i)'' = e_v' + c1 e_v`` (0
+    where clamped), and ``M`` gains ``-k_I sat(e_I)``; ``sat`` clips each axis to
+    ``[-sigma, sigma]`` (see `QuadrotorGains`).
+
     **Arguments:**
 
     - `gains`: a `QuadrotorGains`.
@@ -282,14 +368,25 @@ def quadrotor_control(
     - `x`, `v`: position and velocity (inertial frame, ``e3`` down), shape `(3,)`.
     - `R`: attitude, shape `(3, 3)`; `Omega`: body rate, shape `(3,)`.
     - `reference`: a function ``t -> (x_d(t), b1_d(t))``, both shape `(3,)`.
+    - `e_i`, `e_I`: the position and attitude integrals, shape `(3,)` (default:
+      zero), for gains with integral action only.
 
     **Returns:** a `QuadrotorControl` (``f``, ``M``, ``Rc``, ``Omega_c``,
     ``dOmega_c``, ``x_d`` and the tracking errors).
 
     References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control
     of a quadrotor UAV on SE(3)", CDC 2010, eqs. (12)-(16); the FDCL's
-    reference code (fdcl-gwu) for the derivatives of ``A``.
+    reference code (fdcl-gwu) for the derivatives of ``A``; F. Goodarzi, D. Lee,
+    T. Lee, "Geometric nonlinear PID control of a quadrotor UAV on SE(3)", ECC
+    2013 (the integral terms).
     """
+    if gains.integral:
+        e_i = jnp.zeros_like(x) if e_i is None else e_i
+        e_I = jnp.zeros_like(x) if e_I is None else e_I
+    elif e_i is not None or e_I is not None:
+        raise ValueError(
+            "e_i, e_I need gains with integral action (QuadrotorGains with k_i or k_I nonzero)"
+        )
     t = jnp.asarray(t, x.dtype)
     x_d, x1, x2, x3, x4 = _time_derivatives(lambda s: reference(s)[0], t, 4)
     b1d, b1d1, b1d2 = _time_derivatives(lambda s: reference(s)[1], t, 2)
@@ -301,12 +398,19 @@ def quadrotor_control(
     e_x = x - x_d
     e_v = v - x1
     A = -k_x * e_x - k_v * e_v - m * g * e3 + m * x2
+    if gains.integral:  # sat(e_i) and its first two derivatives (0 where clamped)
+        inside = jnp.abs(e_i) < gains.sigma_i
+        A = A - gains.k_i * jnp.clip(e_i, -gains.sigma_i, gains.sigma_i)
     f = -_dot(A, Re3)
     e_v1 = g * e3 - (f / m)[..., None] * Re3 - x2
     A1 = -k_x * e_v - k_v * e_v1 + m * x3
+    if gains.integral:
+        A1 = A1 - gains.k_i * jnp.where(inside, e_v + gains.c1 * e_x, 0.0)
     f1 = -_dot(A1, Re3) - _dot(A, Re3_1)
     e_v2 = -(f1[..., None] * Re3 + f[..., None] * Re3_1) / m - x3
     A2 = -k_x * e_v1 - k_v * e_v2 + m * x4
+    if gains.integral:
+        A2 = A2 - gains.k_i * jnp.where(inside, e_v1 + gains.c1 * e_v, 0.0)
 
     Rc, Rc1, Rc2 = _commanded_attitude(A, A1, A2, b1d, b1d1, b1d2)
     RcT = _mT(Rc)
@@ -315,6 +419,8 @@ def quadrotor_control(
     # keeps the skew part only.
     dOmega_c = _vee(_mm(RcT, Rc2))
     M = _geometric_torque(gains, vehicle.body, R, Omega, Rc, Omega_c, dOmega_c)
+    if gains.integral:
+        M = M - gains.k_I * jnp.clip(e_I, -gains.sigma_I, gains.sigma_I)
     RtRc = _mm(_mT(R), Rc)
     e_R = _vee(_mT(RtRc))
     e_Omega = Omega - _mv(RtRc, Omega_c)
@@ -504,7 +610,17 @@ _N_ROTORS = 4
 
 
 def _control_of(scene, t, y):
-    return scene.control(t, y)
+    return scene.control(t, scene.measured(t, y))
+
+
+def _control_with_position_integral(scene, t, y, e_i):
+    """The controller at ``(t, y)`` with the position integral ``e_i`` and no attitude
+    integral term (a sample of `Quadrotor._jump_integral`)."""
+    R = y.R[..., 0, :, :]
+    Omega, x, v = y.x[..., 0:3], y.x[..., 3:6], y.x[..., 6:9]
+    return quadrotor_control(
+        scene.gains, scene.vehicle, t, x, v, R, Omega, scene.reference, e_i, jnp.zeros_like(e_i)
+    )
 
 
 #: The controller at one ``(t, y)``, compiled. `quadrotor` and `Quadrotor.for_step`
@@ -519,13 +635,27 @@ class Quadrotor(Scene):
     State: ``y.R = R[None]``; ``y.x = [Omega, x, v]`` (continuous control) or
     ``[Omega, x, v, f, M, c]`` (sampled: the held thrust and moment and the
     number of steps since the last sample), followed by the four rotor thrusts
-    ``[f1, f2, f3, f4]`` when the rotors have a time constant. `observe` saves ``R``,
+    ``[f1, f2, f3, f4]`` when the rotors have a time constant, and by the position and
+    attitude integrals ``[e_i, e_I]`` when the gains have integral action
+    (`QuadrotorGains`). `observe` saves ``R``,
     ``Omega``, ``M`` (the moment applied) and, in `Trajectory.extras`, ``x``, ``v``,
     ``f`` (the thrust applied), ``Rc``, ``Omega_c``, ``dOmega_c``, ``x_d``, ``e_x``,
     ``e_v``, ``e_R``, ``e_Omega`` and ``Psi`` (the controller's view of the saved
     state, with its continuous-time formulas); with rotors also ``rotor_thrust``
     (the four thrusts produced, `(4,)`) and ``f_cmd``, ``M_cmd`` (the controller's
-    command; ``f`` and ``M`` are then ``A`` times the rotor thrusts).
+    command; ``f`` and ``M`` are then ``A`` times the rotor thrusts); with integral
+    action also ``e_i`` and ``e_I`` (the integrals, `(3,)` each).
+
+    The integrals of continuous control are integrated with the rest of ``y.x``
+    (``e_i' = e_v + c1 e_x``, ``e_I' = e_Omega + c2 e_R``; an integral at its clamp
+    ``sigma`` stops growing outward: conditional integration, so it overshoots the
+    clamp by one step at most, and the controller reads ``sat(e)``). Under sampled
+    control the controller integrates at its samples (zero derivative between them):
+    at ``t_k = k T``, ``k >= 1``, ``e_i <- clip(e_i + T (e_v + c1 e_x), -sigma_i,
+    sigma_i)``, then the control is computed with the new ``e_i``, then ``e_I <-
+    clip(e_I + T (e_Omega + c2 e_R), -sigma_I, sigma_I)`` from its errors and ``M``
+    takes the new ``e_I`` (the rectangle rule at the samples, the FDCL's clamp of the
+    integral state); both start at 0, and the sample at ``t = 0`` does not add.
 
     The rotor lag is integrated with the rest of ``y.x`` by the run's Lie-group
     method (a vector-space part of the state, like ``v``); with sampled control its
@@ -540,8 +670,8 @@ class Quadrotor(Scene):
     - `control_period`: ``T`` (an array) or ``None`` (continuous control).
     - `steps_per_sample`: ``T / dt``, set by `for_step` (``None`` before).
 
-    ``rotors``, ``drag`` and ``wind`` are ``None`` here (class attributes: the
-    vehicle is the controller's nominal model); `quadrotor` given any of them
+    ``rotors``, ``drag``, ``wind`` and ``noise`` are ``None`` here (class attributes:
+    the vehicle is the controller's nominal model, its sensors exact); `quadrotor` given any of them
     builds a `QuadrotorPlant`, which carries them as fields.
     """
 
@@ -554,6 +684,7 @@ class Quadrotor(Scene):
     rotors: ClassVar[Rotors | None] = None
     drag: ClassVar[Array | None] = None
     wind: ClassVar[Array | Callable | None] = None
+    noise: ClassVar[SensorNoise | None] = None
 
     @property
     def sampled(self) -> bool:
@@ -568,6 +699,29 @@ class Quadrotor(Scene):
     def _rotor_slots(self) -> slice:
         start = _COUNTER + 1 if self.sampled else _N
         return slice(start, start + _N_ROTORS)
+
+    @property
+    def integral(self) -> bool:
+        """Whether the controller has integral action (``gains.integral``): the
+        integrals ``[e_i, e_I]`` are then the last six entries of ``y.x``."""
+        return self.gains.integral
+
+    @property
+    def _integral_slots(self) -> slice:
+        start = self._rotor_slots.stop if self.lagged else self._rotor_slots.start
+        return slice(start, start + 6)
+
+    def _check_state(self) -> None:
+        """``ValueError`` where the state has no slots for the gains' integrals (or slots
+        for integrals the gains do not have): gains swapped into a scene built without."""
+        n = self._integral_slots.stop if self.integral else self._integral_slots.start
+        if self.y0.x.shape[-1] != n:
+            want = "with" if self.integral else "without"
+            raise ValueError(
+                f"the gains are {want} integral action (k_i, k_I) but the scene's state is "
+                f"not: build the scene {want} them, scenes.quadrotor(..., gains=...), "
+                "instead of swapping the gains in"
+            )
 
     def with_inertia(self, body):
         """The vehicle with another body (the control held at ``t = 0`` is sampled anew)."""
@@ -586,7 +740,14 @@ class Quadrotor(Scene):
             rotors=self.rotors,
             drag=self.drag,
             wind=self.wind,
+            noise=self.noise,
         )
+
+    def sweep_hook(self):
+        """How `so3jax.sweep` runs this scene: `so3jax._sweep_hooks.QuadrotorSweep`."""
+        from ._sweep_hooks import QuadrotorSweep
+
+        return QuadrotorSweep()
 
     def steps_per_hold(self, dt) -> int:
         """``control_period / dt``; ``ValueError`` unless ``dt`` divides the period.
@@ -600,7 +761,35 @@ class Quadrotor(Scene):
         """The controller at ``(t, y)`` (continuous-time formulas)."""
         R = y.R[..., 0, :, :]
         Omega, x, v = y.x[..., 0:3], y.x[..., 3:6], y.x[..., 6:9]
+        if self.integral:
+            e = y.x[..., self._integral_slots]
+            return quadrotor_control(
+                self.gains, self.vehicle, t, x, v, R, Omega, self.reference, e[..., :3], e[..., 3:]
+            )
         return quadrotor_control(self.gains, self.vehicle, t, x, v, R, Omega, self.reference)
+
+    def _integral_rates(self, y, c: QuadrotorControl) -> Array:
+        """``[e_i', e_I']`` under continuous control, 0 where an integral at its clamp
+        would grow outward (conditional integration)."""
+        g = self.gains
+        e = y.x[..., self._integral_slots]
+        rate = jnp.concatenate([c.e_v + g.c1 * c.e_x, c.e_Omega + g.c2 * c.e_R], -1)
+        shape = e.shape[:-1] + (3,)
+        sigma = jnp.concatenate(
+            [jnp.broadcast_to(g.sigma_i, shape), jnp.broadcast_to(g.sigma_I, shape)], -1
+        )
+        return jnp.where((jnp.abs(e) >= sigma) & (e * rate > 0), 0.0, rate)
+
+    def measured(self, t, y) -> LieState:
+        """The state the controller reads at a sample at ``t``: ``y`` itself without
+        `noise`, else ``y`` with the attitude, rate, position and velocity perturbed
+        (`SensorNoise.perturb`, at the sample ``round(t / control_period)``)."""
+        if self.noise is None:
+            return y
+        R, Omega, x, v = self.noise.perturb(
+            t, self.control_period, y.R[..., 0, :, :], y.x[..., 0:3], y.x[..., 3:6], y.x[..., 6:9]
+        )
+        return LieState(R[..., None, :, :], jnp.concatenate([Omega, x, v, y.x[..., _N:]], -1))
 
     def fault(self, t, y):
         """`COMMAND_UNDEFINED` where the commanded attitude at ``(t, y)`` is undefined.
@@ -637,7 +826,11 @@ class Quadrotor(Scene):
     def vector_field(self, t, y):
         R = y.R[..., 0, :, :]
         Omega, v = y.x[..., 0:3], y.x[..., 6:9]
-        f, M = self.commanded(t, y)
+        if self.integral and not self.sampled:
+            c = self.control(t, y)
+            f, M = c.f, c.M
+        else:
+            f, M = self.commanded(t, y)
         if self.rotors is not None:
             thrusts, cmd = self.rotor_thrusts(y, f, M)
             f, M = self.rotors.wrench(thrusts)
@@ -651,6 +844,9 @@ class Quadrotor(Scene):
             parts.append(jnp.zeros_like(y.x[..., _N : _COUNTER + 1]))
         if self.lagged:
             parts.append(self.rotors.lag_rate(thrusts, cmd))
+        if self.integral:
+            e = y.x[..., self._integral_slots]
+            parts.append(jnp.zeros_like(e) if self.sampled else self._integral_rates(y, c))
         return LieTangent(Omega[..., None, :], jnp.concatenate(parts, -1))
 
     def for_step(self, dt, t0):
@@ -666,6 +862,7 @@ class Quadrotor(Scene):
         command at ``(0, y0)`` (recomputed like the held control); a run from
         ``t0 != 0`` continues from the thrusts in ``y0``.
         """
+        self._check_state()
         if not self.sampled:
             return _start_rotors(self, t0) if self.lagged else self
         T = self.control_period
@@ -693,6 +890,8 @@ class Quadrotor(Scene):
             )
         count = y.x[..., _COUNTER] + 1.0
         sample = count > self.steps_per_sample - 0.5
+        if self.integral:
+            return self._jump_integral(t, y, count, sample)
         # Rematerialised in reverse mode: fewer saved residuals per step (faster on CPU).
         c = eqx.filter_checkpoint(_control_of, prevent_cse=False)(self, t, y)
         new = jnp.concatenate([c.f[..., None], c.M], -1)
@@ -703,9 +902,34 @@ class Quadrotor(Scene):
             parts.append(y.x[..., self._rotor_slots])
         return LieState(y.R, jnp.concatenate(parts, -1))
 
+    def _jump_integral(self, t, y, count, sample):
+        """`jump` of a sampled controller with integral action: at a sample, the
+        integrals take one step of the rectangle rule, clamped, and the held control is
+        computed with them (see the class docstring)."""
+        g, T = self.gains, self.control_period
+        ym = self.measured(t, y)
+        e = y.x[..., self._integral_slots]
+        x_d, x_d1 = _time_derivatives(lambda s: self.reference(s)[0], jnp.asarray(t, y.x.dtype), 1)
+        rate_i = (ym.x[..., 6:9] - x_d1) + g.c1 * (ym.x[..., 3:6] - x_d)
+        e_i = jnp.clip(e[..., :3] + T * rate_i, -g.sigma_i, g.sigma_i)
+        # Rematerialised in reverse mode, as in `jump`.
+        c = eqx.filter_checkpoint(_control_with_position_integral, prevent_cse=False)(
+            self, t, ym, e_i
+        )
+        e_I = jnp.clip(e[..., 3:] + T * (c.e_Omega + g.c2 * c.e_R), -g.sigma_I, g.sigma_I)
+        new = jnp.concatenate([c.f[..., None], c.M - g.k_I * e_I], -1)
+        held = jnp.where(sample[..., None], new, y.x[..., _HELD])
+        e = jnp.where(sample[..., None], jnp.concatenate([e_i, e_I], -1), e)
+        count = jnp.where(sample, jnp.zeros_like(count), count)
+        parts = [y.x[..., :_N], held, count[..., None]]
+        if self.lagged:
+            parts.append(y.x[..., self._rotor_slots])
+        return LieState(y.R, jnp.concatenate(parts + [e], -1))
+
     def observe(self, t, y):
         c = self.control(t, y)
         f, M = (y.x[..., 9], y.x[..., 10:13]) if self.sampled else (c.f, c.M)
+        extras = self._observe_rotors(y, f, M) | self._observe_integrals(y)
         return {
             "R": y.R[..., 0, :, :],
             "Omega": y.x[..., 0:3],
@@ -722,7 +946,13 @@ class Quadrotor(Scene):
             "e_R": c.e_R,
             "e_Omega": c.e_Omega,
             "Psi": c.Psi,
-        } | self._observe_rotors(y, f, M)
+        } | extras
+
+    def _observe_integrals(self, y) -> dict[str, Array]:
+        if not self.integral:
+            return {}
+        e = y.x[..., self._integral_slots]
+        return {"e_i": e[..., :3], "e_I": e[..., 3:]}
 
     def _observe_rotors(self, y, f_cmd, M_cmd) -> dict[str, Array]:
         if self.rotors is None:
@@ -748,6 +978,19 @@ class QuadrotorPlant(Quadrotor):
     rotors: Rotors | None = None
     drag: Array | None = None
     wind: Array | Callable | None = None
+
+
+class NoisyQuadrotor(QuadrotorPlant):
+    """A `QuadrotorPlant` whose sampled controller reads a noisy state.
+
+    **Fields:** those of `QuadrotorPlant`, and
+
+    - `noise`: a `SensorNoise`, drawn at each sample (`Quadrotor.measured`).
+
+    Built by `quadrotor` when `noise` is given (a scene without noise keeps its pytree).
+    """
+
+    noise: SensorNoise | None = None
 
 
 def _vector_arg(value, name: str, dtype) -> Array:
@@ -778,6 +1021,7 @@ def quadrotor(
     rotors: Rotors | None = None,
     drag: ArrayLike | None = None,
     wind: ArrayLike | Callable | None = None,
+    noise: SensorNoise | None = None,
 ) -> Quadrotor:
     """A quadrotor tracking a position and heading under Lee's controller on SE(3).
 
@@ -790,18 +1034,30 @@ def quadrotor(
     holds the control sampled at ``t = 0``).
 
     With `rotors`, the commanded ``(f_cmd, M_cmd)`` is allocated to the four
-    rotors, clipped, optionally lagged (``tau f_i' = f_i,cmd - f_i``, the thrusts
+    rotors within their bounds (`Rotors.allocation`: plain clipping, or yaw given up
+    first), optionally lagged (``tau f_i' = f_i,cmd - f_i``, the thrusts
     starting at the clipped command at ``t = 0``), and ``(f, M) = A [f1..f4]``
     (Lee et al.'s eq. (1); see `Rotors`) is applied. With `drag`, ``m v'`` gains
     ``-R diag(d) R^T (v - w(t))`` (air at the wind velocity ``w``, world frame).
     The controller is not told: it keeps its nominal model (no limits, lag, drag
     or wind) and computes ``Omega_c``, ``dOmega_c`` from its own command.
 
+    With integral gains (`QuadrotorGains` with ``k_i`` or ``k_I`` nonzero: the
+    geometric PID controller of Goodarzi, Lee & Lee, ECC 2013) the state also carries
+    the position and attitude integrals ``[e_i, e_I]``, starting at zero: integrated
+    with the state under continuous control, summed at the samples under
+    `control_period` (see `Quadrotor`), clamped to ``[-sigma, sigma]`` either way.
+    They remove the steady position error that a constant unmodelled force (the
+    drag in a steady wind) leaves; without them (the default) the scene is the PD
+    scene, the same program.
+
     **Arguments:**
 
     - `mass`: ``m`` in kg (> 0).
     - `inertia`: `(3, 3)` inertia, 3 principal moments, or a `RigidBody`.
-    - `gains`: a `QuadrotorGains`.
+    - `gains`: a `QuadrotorGains` (with integral gains: integral action, decided
+      here; swapping integral gains into a scene built without them, or back, is a
+      ``ValueError`` when it runs).
     - `reference`: a function ``t -> (x_d(t), b1_d(t))``, both shape `(3,)`,
       differentiable in ``t`` (e.g. `CircleReference`, `FlipReference`).
       ``b1_d`` need not be a unit vector but must not be parallel to ``b3c``.
@@ -816,14 +1072,19 @@ def quadrotor(
       shape `(3,)` (or a scalar for all three), or ``None`` (no drag).
     - `wind`: ``w``, the wind velocity in m/s in the world frame: shape `(3,)`,
       or a function ``t -> w(t)`` of shape `(3,)`; ``None`` is still air. It
-      acts through the drag (`drag` required).
+      acts through the drag (`drag` required). A `Gust` is such a function.
+    - `noise`: a `SensorNoise`: at each sample the controller reads the state with
+      its attitude, rate, position and velocity perturbed (`Quadrotor.measured`);
+      the plant and the saved state are not. Needs `control_period`. ``None``: the
+      controller reads the true state.
 
     The dtype of the scene is that of ``R0`` (default: JAX's default float).
 
     **Returns:** a `Quadrotor` scene for `simulate`.
 
     References: T. Lee, M. Leok, N. H. McClamroch, "Geometric tracking control
-    of a quadrotor UAV on SE(3)", CDC 2010.
+    of a quadrotor UAV on SE(3)", CDC 2010; F. Goodarzi, D. Lee, T. Lee, "Geometric
+    nonlinear PID control of a quadrotor UAV on SE(3)", ECC 2013 (integral action).
     """
     if R0 is None:
         R0 = np.eye(3, dtype=jnp.result_type(float))
@@ -846,9 +1107,13 @@ def quadrotor(
     vehicle = QuadrotorVehicle(mass=m, body=body, g=g)
     y0 = _quadrotor_state(R0, Omega0, x0, v0)
     plant = _plant_options(rotors, drag, wind, m, g, dtype)
-    scene = (QuadrotorPlant if plant else Quadrotor)(
-        vehicle=vehicle, gains=gains, reference=reference, y0=y0, control_period=T, **plant
-    )
+    cls = QuadrotorPlant if plant else Quadrotor
+    noise = check_noise(noise, T, dtype)
+    if noise is not None:
+        plant["noise"], cls = noise, NoisyQuadrotor
+    scene = cls(vehicle=vehicle, gains=gains, reference=reference, y0=y0, control_period=T, **plant)
+    if scene.integral:
+        return eqx.tree_at(lambda s: s.y0, scene, _start_with_integrals(scene))
     if T is not None:
         scene = eqx.tree_at(lambda s: s.y0, scene, _hold_initial_control(scene))
     if scene.lagged:
@@ -907,6 +1172,24 @@ def _start_rotors(scene: Quadrotor, t0) -> Quadrotor:
     slots = scene._rotor_slots
     start = jnp.where(t0 == 0, scene.rotors.command(f, M), y.x[..., slots])
     return eqx.tree_at(lambda s: s.y0, scene, LieState(y.R, y.x.at[..., slots].set(start)))
+
+
+@eqx.filter_jit
+def _start_with_integrals(scene: Quadrotor) -> LieState:
+    """The initial state of a scene with integral action: ``[Omega, x, v]`` followed by
+    the control held at ``t = 0`` (sampled), the rotor thrusts at the clipped command
+    at ``t = 0`` (lagged) and the integrals, zero (one compiled call)."""
+    y = scene.y0
+    n = scene._integral_slots.stop
+    y = LieState(y.R, jnp.concatenate([y.x, jnp.zeros(n - y.x.shape[-1], y.x.dtype)]))
+    t0 = jnp.zeros((), y.x.dtype)
+    if scene.sampled:
+        c = _control_of(scene, t0, y)
+        y = LieState(y.R, y.x.at[_HELD].set(jnp.concatenate([c.f[None], c.M])))
+    if scene.lagged:
+        f, M = scene.commanded(t0, y)
+        y = LieState(y.R, y.x.at[scene._rotor_slots].set(scene.rotors.command(f, M)))
+    return y
 
 
 @eqx.filter_jit

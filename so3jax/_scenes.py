@@ -23,6 +23,7 @@ from ._control import (
 )
 from ._dynamics import RigidBody
 from ._scene import MechanicalScene, check_rotation, check_vector
+from ._sensors import SensorNoise, check_noise
 from ._so3 import _as_float, _exp_jit, _is_concrete, _to_dtype, from_euler_zyx
 from ._state import LieState
 from ._types import Array, ArrayLike
@@ -208,7 +209,14 @@ class Tracking(MechanicalScene):
             max_torque=self.max_torque,
             control_period=self.control_period,
             disturbance=self.disturbance,
+            noise=getattr(self, "noise", None),
         )
+
+    def sweep_hook(self):
+        """How `so3jax.sweep` runs this scene: `so3jax._sweep_hooks.AttitudeSweep`."""
+        from ._sweep_hooks import AttitudeSweep
+
+        return AttitudeSweep()
 
     def restarted(self, R0):
         if not self.controller.memory_size:
@@ -257,7 +265,10 @@ def _steps_per_hold(control_period, dt) -> int:
 
 
 def _sample_torque(scene, t, y):
-    """The controller's torque at ``(t, y)`` (a sample of `SampledTracking`)."""
+    """The controller's torque at ``(t, y)`` (a sample of `SampledTracking`), from the
+    state it reads (`SampledTracking.measured`)."""
+    if getattr(scene, "noise", None) is not None:
+        y = scene.measured(t, y)
     R, Rd, Omega, mem, Od, dOd = scene._parts(t, y)
     return scene.controller(t, scene.body, R, Omega, Rd, Od, dOd, scene._memory(mem))
 
@@ -283,9 +294,24 @@ class SampledTracking(Tracking):
     **Fields:** those of `Tracking`, and
 
     - `steps_per_sample`: ``T / dt``, set by `for_step` (``None`` before).
+
+    ``noise`` is ``None`` here (a class attribute: the controller reads the true
+    state); `tracking` given a `SensorNoise` builds a `NoisyTracking`, which carries
+    it as a field, so that a scene without noise keeps its pytree and its program.
     """
 
     steps_per_sample: Array | None = None
+    noise: ClassVar[SensorNoise | None] = None
+
+    def measured(self, t, y) -> LieState:
+        """The state the controller reads at a sample at ``t``: ``y`` itself without
+        `noise`, else ``y`` with the body attitude and rate perturbed
+        (`SensorNoise.perturb`, at the sample ``round(t / control_period)``)."""
+        if self.noise is None:
+            return y
+        R, Omega = self.noise.perturb(t, self.control_period, y.R[..., 0, :, :], y.x[..., :3])
+        Rs = jnp.concatenate([R[..., None, :, :], y.R[..., 1:, :, :]], -3)
+        return LieState(Rs, jnp.concatenate([Omega, y.x[..., 3:]], -1))
 
     def steps_per_hold(self, dt) -> int:
         """``control_period / dt``; ``ValueError`` unless ``dt`` divides the period.
@@ -348,6 +374,18 @@ class SampledTracking(Tracking):
         return LieState(y.R, x)
 
 
+class NoisyTracking(SampledTracking):
+    """A `SampledTracking` scene whose controller reads a noisy attitude and rate.
+
+    **Fields:** those of `SampledTracking`, and
+
+    - `noise`: a `SensorNoise` (its `attitude` and `rate` apply), drawn at each
+      sample (`SampledTracking.measured`).
+    """
+
+    noise: SensorNoise | None = None
+
+
 def _cast_floats(tree, dtype):
     """Every float array of ``tree`` as a (strongly typed) array of ``dtype``.
 
@@ -388,6 +426,7 @@ def tracking(
     max_torque: ArrayLike | None = None,
     control_period: ArrayLike | None = None,
     disturbance: ArrayLike | None = None,
+    noise: SensorNoise | None = None,
 ) -> Tracking:
     """Attitude tracking: a rigid body, a controller and a reference rate.
 
@@ -425,6 +464,10 @@ def tracking(
     - `disturbance`: a constant body torque ``d`` in N m, shape `(3,)`, added to the
       applied torque (the meaning and sign of `sweep`'s ``params["disturbance"]``),
       or ``None``.
+    - `noise`: a `SensorNoise` (its `attitude` and `rate`; `position` and `velocity`
+      must be 0): at each sample the controller reads ``R exp(hat(xi_R))`` and
+      ``Omega + xi_Omega`` (`SampledTracking.measured`); the body and the saved state
+      are not perturbed. Needs `control_period`. ``None``: the true state.
 
     The dtype of the scene is that of ``R0``; the controller's and the
     reference's parameters and the options are cast to it. Bad shapes raise a
@@ -460,13 +503,16 @@ def tracking(
         "control_period": _control_period_arg(control_period, dtype),
         "disturbance": _disturbance_arg(disturbance, dtype),
     }
+    noise = check_noise(noise, options["control_period"], dtype, attitude_only=True)
     y0 = _tracking_state(controller, R0, Rd0, Omega0)
     if options["control_period"] is None:
         return Tracking(body=body, controller=controller, reference=reference, y0=y0, **options)
     T = options.pop("control_period")
     continuous = Tracking(body=body, controller=controller, reference=reference, y0=y0, **options)
     y0 = _hold_initial_torque(continuous)
-    return SampledTracking(
+    if noise is not None:
+        options["noise"] = noise
+    return (SampledTracking if noise is None else NoisyTracking)(
         body=body, controller=controller, reference=reference, y0=y0, control_period=T, **options
     )
 

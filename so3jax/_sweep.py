@@ -60,20 +60,12 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ._engine import plan as _plan
 from ._engine.policy import sweep_chunk, sweep_scalarize
 from ._integrators import RKMK4, AbstractLieSolver
-from ._quadrotor import Quadrotor, _restart, position_metrics
-from ._simulate import simulate, simulate_from
-from ._so3 import _attitude_error_function, random_rotation
-from ._stability import SAFETY, stable_dt
-from ._sweep_params import apply_params, check_params, draw, prepare_scene, split_params
-from ._trajectory import OK, _check_int, settling_time
-from ._tune import (
-    CostWeights,
-    _check_tracking_scene,
-    _check_weights,
-    _tracking_cost,
-    with_gains,
-    with_start,
-)
+from ._so3 import random_rotation
+from ._stability import SAFETY
+from ._sweep_hooks import sweep_hook
+from ._sweep_params import check_params, draw, split_params
+from ._trajectory import OK, _check_int
+from ._tune import CostWeights, _check_weights
 from ._types import Array
 
 #: Per-run statistics, taken from the run that resolved a failure.
@@ -549,69 +541,10 @@ def _run_metrics(
     pv=None,
     scalarize=False,
 ):
-    if isinstance(scene, Quadrotor):
-        return _quadrotor_metrics(
-            scene, method, dt, n_steps, save_every, threshold, weights, k_R, k_O, R0, W0, scalarize
-        )
-    sc = apply_params(scene, pv) if pv else scene
-    # The start goes in apart from the scene's attitudes, so the runs share Rd.
-    sc, R0 = with_start(with_gains(sc, k_R, k_O), R0, W0)
-    traj = simulate_from(sc, R0, method, dt, n_steps, save_every, scalarize)
-    psi = _attitude_error_function(traj.R, traj.Rd)
-    t_settle = settling_time(traj.t, psi < threshold)
-    # (summed the same in every chunk: a chunked sweep equals a whole one bit for bit)
-    cost = _tracking_cost(traj, sc.reference, weights, chunk_invariant=True)  # (checked)
-    return _stats(traj, psi, t_settle, cost)
-
-
-def _stats(traj, psi, t_settle, cost) -> dict:
-    ok = traj.status.code == OK
-    nan = jnp.array(jnp.nan, psi.dtype)
-    return {
-        "final_psi": psi[-1],
-        "settling_time": jnp.where(ok, t_settle, nan),
-        "peak_torque": jnp.where(ok, jnp.max(jnp.sqrt(jnp.sum(traj.M**2, -1))), nan),
-        "cost": cost,
-        "status_code": traj.status.code,
-        "fail_step": traj.status.step,
-    }
-
-
-def _quadrotor_metrics(
-    scene, method, dt, n_steps, save_every, threshold, weights, k_R, k_O, R0, W0, scalarize
-):
-    """One quadrotor run: the attitude statistics against ``Rc`` plus position ones.
-
-    ``threshold = (Psi threshold, position threshold)``; the cost integrates
-    ``|e_x|^2 + w_Psi Psi(R, Rc) + w_Omega |e_Omega|^2 + w_M |M|^2``.
-    """
-    psi_thr, pos_thr = threshold
-    dtype = scene.y0.R.dtype
-    sc = eqx.tree_at(
-        lambda s: (s.gains.k_R, s.gains.k_Omega),
-        scene,
-        (jnp.asarray(k_R, dtype), jnp.asarray(k_O, dtype)),
+    """One run's statistics, as the scene's sweep hook takes them (`so3jax._sweep_hooks`)."""
+    return sweep_hook(scene).run(
+        scene, method, dt, n_steps, save_every, threshold, weights, k_R, k_O, R0, W0, pv, scalarize
     )
-    y0 = _restart(sc, R0)
-    y0 = type(y0)(y0.R, y0.x.at[0:3].set(jnp.asarray(W0, dtype)))
-    sc = eqx.tree_at(lambda s: s.y0, sc, y0)
-    traj = simulate(sc, method, dt, n_steps, save_every, scalarize=scalarize)
-    ex = traj.extras
-    psi = ex["Psi"]
-    e, extra = position_metrics(traj)
-    t_settle = settling_time(traj.t, (psi < psi_thr) & (e < pos_thr))
-    f = (
-        e**2
-        + weights.psi * psi
-        + weights.omega * jnp.sum(ex["e_Omega"] ** 2, -1)
-        + weights.effort * jnp.sum(traj.M**2, -1)
-    )
-    cost = jnp.sum(0.5 * (f[1:] + f[:-1]) * jnp.diff(traj.t))
-    out = _stats(traj, psi, t_settle, cost)
-    nan = jnp.array(jnp.nan, dtype)
-    ok = traj.status.code == OK
-    out.update({k: jnp.where(ok, v, nan) for k, v in extra.items()})
-    return out
 
 
 @_plan.jit
@@ -830,8 +763,10 @@ def sweep(
       thrust axis and up over the saved points: below 0, it flew upside down).
       With sampled control (``control_period``) the feedback sets no step limit
       (it is held over a step): a failed run is re-run at half the step, numerical
-      if finite there (a fast spin the step did not resolve), diverged if not.
-      ``params`` takes only ``Omega0`` for a quadrotor.
+      if finite there (a fast spin the step did not resolve), diverged if not; a
+      rotor lag ``tau`` limits the step to ``safety * stability_interval(method) *
+      tau``. How `sweep` treats a scene is the scene's hook (``scene.sweep_hook()``,
+      `so3jax._sweep_hooks`: its parameters, start, statistics and step limit).
     - `k_R`, `k_Omega`: gains, shape `(a,)` and `(b,)` (``grid=True``: all
       ``a * b`` pairs) or both `(G,)` / `(G, 3)` (``grid=False``: a list of pairs).
     - `key`: a JAX PRNG key or an int seed for the initial states.
@@ -841,13 +776,23 @@ def sweep(
     - `dt`, `n_steps`, `save_every`: as in `simulate` (statistics use saved points).
     - `omega0_std`: standard deviation of random initial rates (rad/s) added
       to the scene's ``Omega0``.
-    - `params`: other scene parameters to vary, by name: ``inertia_scale``
-      (`(P,)` or `(P, 3)`, > 0, per axis), ``disturbance`` (`(P, 3)`, a constant
-      body torque), ``Omega0`` (`(P, 3)`, initial rates), ``reference_amplitude``
-      (`(P,)`, a factor on the reference rate). Every combination runs from
-      every initial attitude: ``N = P * n_attitudes`` columns, keyed by name in
-      `SweepResult.params`. A value may instead be a distribution, a function
-      ``key -> value``, drawn once per initial attitude.
+    - `params`: other scene parameters to vary, by name. An attitude scene takes
+      ``inertia_scale`` (`(P,)` or `(P, 3)`, > 0, per axis), ``disturbance``
+      (`(P, 3)`, a constant body torque in N m), ``Omega0`` (`(P, 3)`, initial
+      rates), ``reference_amplitude`` (`(P,)`, a factor on the reference rate) and
+      ``max_torque`` (`(P,)` or `(P, 3)`, > 0: the torque limit in N m per body
+      axis, as `scenes.tracking`'s ``max_torque``; a scene without one gets it). A
+      quadrotor takes ``Omega0``; ``thrust_max`` (`(P,)`, N per rotor) or
+      ``thrust_to_weight`` (`(P,)`, ``4 thrust_max / (m g)``), which must let the
+      rotors hover, with a scene built with ``rotors=so3jax.Rotors(...)``;
+      ``time_constant`` (`(P,)`, > 0, the rotor lag in s; rotors built with a time
+      constant, so that their thrusts are state); and ``wind_speed`` (`(P, 3)`, a
+      constant mean wind in m/s, world frame; a scene with ``drag``). Every
+      combination runs from every initial attitude: ``N = P * n_attitudes`` columns,
+      keyed by name in `SweepResult.params`. A value may instead be a distribution,
+      a function ``key -> value``, drawn once per initial attitude. A wrong name,
+      shape or value, or a parameter the scene cannot take, raises a ``ValueError``
+      naming it.
     - `param_grid`: cross the `params` arrays (``True``) or zip them (``False``:
       the same length, e.g. samples drawn from a distribution).
     - `threshold`: settling threshold on ``Psi = 1 - cos(angle)`` (0.01: 8.1 degrees).
@@ -885,9 +830,8 @@ def sweep(
 
     **Returns:** a `SweepResult`.
     """
-    quad = isinstance(scene, Quadrotor)
-    if not quad:
-        _check_tracking_scene(scene)
+    hook = sweep_hook(scene)
+    hook.check(scene)
     if method is None:
         method = RKMK4()
     if not isinstance(method, AbstractLieSolver):
@@ -927,47 +871,25 @@ def sweep(
     kr, ko, grid_shape = _gain_pairs(k_R, k_Omega, grid, bool(allow_negative_gains))
     G = kr.shape[0]
     arrays, dists = split_params(params)
-    bad = sorted((set(arrays) | set(dists)) - {"Omega0"})
-    if quad and bad:
-        raise ValueError(
-            f"params {bad} vary an attitude tracking scene; a quadrotor sweep takes only "
-            "'Omega0' (vary the vehicle by building scenes with scenes.quadrotor)"
-        )
+    hook.accept(set(arrays) | set(dists))
     prows = check_params(arrays, bool(param_grid))
     P = next(iter(prows.values())).shape[0] if prows else 1
     drawn = draw(dists, key, n_att)
-    if not quad:
-        scene = prepare_scene(scene, {**prows, **drawn})
+    scene = hook.prepare(scene, {**prows, **drawn})
+    run_threshold, position_threshold = hook.thresholds(threshold, position_threshold)
     # Column i = p * n_att + a: combination p of the parameter arrays, from attitude a
     # (distributions are sampled per attitude a).
     col_p, col_a = np.arange(P * n_att) // n_att, np.arange(P * n_att) % n_att
     col_params = {k: v[col_p] for k, v in prows.items()}
     col_params.update({k: v[col_a] for k, v in drawn.items()})
-    J = np.asarray((scene.vehicle.body if quad else scene.body).inertia, np.float64)
-    if quad and scene.sampled:
-        st = np.full((G, col_p.size), np.inf)
-    elif "inertia_scale" in col_params:
-        scales, which = np.unique(col_params["inertia_scale"], axis=0, return_inverse=True)
-        inertias = [np.sqrt(sc)[:, None] * J * np.sqrt(sc) for sc in scales]
-        st = np.stack([stable_dt(method, Ji, kr, ko, safety) for Ji in inertias], 1)
-        st = st[:, which.reshape(-1)]
-        for sc, Ji in zip(scales, inertias, strict=True):
-            m = np.sort(np.linalg.eigvalsh(Ji))
-            if m[0] + m[1] < m[2] * (1 - 1e-12):
-                warnings.warn(
-                    f"params['inertia_scale'] {sc} gives principal moments {m} that violate "
-                    "the triangle inequality J1 + J2 >= J3: no physical rigid body has them",
-                    stacklevel=2,
-                )
-                break
-    else:
-        st = np.repeat(stable_dt(method, J, kr, ko, safety)[:, None], col_p.size, axis=1)
+    st = hook.stable_dt(scene, method, kr, ko, safety, col_params, col_p.size)
     dt_stable = st.min(axis=1)
     _warn_step(method, dt, dt_stable, ko, refine)
-    R0a, W0a = initial_states(key, n_att, omega0_std, dtype, scene.y0.x[:3])
+    Omega_scene = hook.initial_rate(scene)
+    R0a, W0a = initial_states(key, n_att, omega0_std, dtype, Omega_scene)
     R0, W0 = np.asarray(R0a)[col_a], np.asarray(W0a)[col_a]
     if "Omega0" in col_params:
-        W0 = (W0 - np.asarray(scene.y0.x[:3]) + col_params["Omega0"]).astype(dtype)
+        W0 = (W0 - np.asarray(Omega_scene) + col_params["Omega0"]).astype(dtype)
     pv_cols = {k: v.astype(dtype) for k, v in col_params.items() if k != "Omega0"}
     n_att = P * n_att  # columns
     stable_run = st.reshape(-1)
@@ -999,7 +921,7 @@ def sweep(
             "n_steps": n_steps,
             "save_every": save_every,
             "threshold": threshold,
-            "position_threshold": position_threshold if quad else None,
+            "position_threshold": position_threshold,
             "weights": [float(weights.psi), float(weights.omega), float(weights.effort)],
             "chunk": chunk,
             "refine": refine,
@@ -1040,7 +962,7 @@ def sweep(
             dt / f,
             n_steps * f,
             save_every * f,
-            (threshold, position_threshold) if quad else threshold,
+            run_threshold,
             weights,
             *args,
             bool(scalarize),
@@ -1114,7 +1036,7 @@ def sweep(
         refine=refine,
         params=col_params,
         metrics=metrics,
-        position_threshold=position_threshold if quad else None,
+        position_threshold=position_threshold,
         **runs,
     )
 

@@ -11,6 +11,21 @@ A sweep's ``params`` maps names to arrays whose leading axis lists values:
   ``omega0_std`` noise is added on top).
 - ``reference_amplitude``: a factor on the reference rate and its derivative,
   `(P,)`.
+- ``max_torque``: the actuators' torque limit in N m per body axis, `(P,)` (the same
+  on every axis) or `(P, 3)`, every entry > 0 (`scenes.tracking`'s ``max_torque``).
+
+A quadrotor (`prepare_quadrotor`, `apply_quadrotor_params`) takes ``Omega0`` and
+
+- ``thrust_max``: each rotor's thrust limit in N, `(P,)` (a scene built with
+  ``rotors``); or ``thrust_to_weight``, ``4 thrust_max / (m g)``, `(P,)` (not both);
+  either must let the rotors hover (``4 thrust_max >= m g``) and stay above the
+  rotors' ``thrust_min``.
+- ``time_constant``: the rotor lag ``tau`` in s, `(P,)`, > 0 (a scene whose rotors
+  have a time constant, so that their thrusts are state).
+- ``wind_speed``: a constant mean wind in m/s, world frame, `(P, 3)` (a scene with
+  ``drag``).
+
+Which parameters a scene takes is its sweep hook's (`so3jax._sweep_hooks`).
 
 With ``param_grid=True`` the named arrays are crossed (every combination);
 with ``False`` they are zipped (the same ``P``: e.g. ``P`` samples drawn from
@@ -41,6 +56,36 @@ PARAMS = {
     "disturbance": (3,),
     "Omega0": (3,),
     "reference_amplitude": (),
+    # New names go at the end: a distribution's draws are keyed by the place here.
+    "max_torque": (3,),
+    "thrust_max": (),
+    "thrust_to_weight": (),
+    "time_constant": (),
+    "wind_speed": (3,),
+}
+
+#: What each parameter is, and its unit ("" for a pure number): axis labels of plots.
+PARAM_LABELS = {
+    "inertia_scale": ("inertia scale", ""),
+    "disturbance": ("disturbance torque", "N m"),
+    "Omega0": ("initial rate", "rad/s"),
+    "reference_amplitude": ("reference amplitude", ""),
+    "max_torque": ("torque limit", "N m"),
+    "thrust_max": ("rotor thrust limit", "N"),
+    "thrust_to_weight": ("thrust-to-weight ratio 4 thrust_max / (m g)", ""),
+    "time_constant": ("rotor time constant", "s"),
+    "wind_speed": ("mean wind", "m/s"),
+}
+
+#: Parameters given per body axis: a scalar value stands for the same on all three.
+_PER_AXIS = ("inertia_scale", "max_torque")
+#: Parameters whose every entry must be > 0, with what a value is.
+_POSITIVE = {
+    "inertia_scale": "a scale of the inertia",
+    "max_torque": "a torque limit in N m",
+    "thrust_max": "a rotor's thrust limit in N",
+    "thrust_to_weight": "4 thrust_max / (m g)",
+    "time_constant": "a rotor time constant in s",
 }
 
 
@@ -69,20 +114,18 @@ def _validate(name: str, value, leading: str) -> np.ndarray:
     """``value`` as float64 `(n, *shape)`; ``ValueError`` naming the parameter otherwise."""
     v = np.asarray(value, dtype=np.float64)
     shape = PARAMS[name]
-    if name == "inertia_scale" and v.ndim == 1:
+    if name in _PER_AXIS and v.ndim == 1:
         v = np.repeat(v[:, None], 3, axis=1)
     if v.ndim != 1 + len(shape) or v.shape[1:] != shape or v.shape[0] < 1:
-        if name == "inertia_scale":
+        if name in _PER_AXIS:
             want = f"({leading},) or ({leading}, 3)"
         else:
             want = str((leading,) + shape)
         raise ValueError(f"params[{name!r}] must have shape {want}, got {np.shape(value)}")
     if not np.all(np.isfinite(v)):
         raise ValueError(f"params[{name!r}] must be finite")
-    if name == "inertia_scale" and np.any(v <= 0):
-        raise ValueError(
-            f"params['inertia_scale'] must be > 0 (a scale of the inertia), got min {v.min():g}"
-        )
+    if name in _POSITIVE and np.any(v <= 0):
+        raise ValueError(f"params[{name!r}] must be > 0 ({_POSITIVE[name]}), got min {v.min():g}")
     return v
 
 
@@ -115,7 +158,7 @@ def draw(dists: Mapping[str, Callable], key, n: int) -> dict[str, np.ndarray]:
                 f"params[{name!r}]: a distribution must be a function key -> value; it failed: {e}"
             ) from e
         shape = PARAMS[name]
-        if name == "inertia_scale" and np.shape(v) == (n,):
+        if name in _PER_AXIS and np.shape(v) == (n,):
             v = np.repeat(np.asarray(v)[:, None], 3, axis=1)
         if np.shape(v) != (n,) + shape:
             raise ValueError(
@@ -144,12 +187,18 @@ def check_params(params: Mapping | None, grid: bool) -> dict[str, np.ndarray]:
 
 
 def prepare_scene(scene: Tracking, names) -> Tracking:
-    """The scene with the slots the named parameters need (a disturbance, a scaled reference)."""
+    """The scene with the slots the named parameters need (a disturbance, a torque limit,
+    a scaled reference)."""
     dtype = scene.y0.R.dtype
     if "disturbance" in names and scene.disturbance is None:
         # A slot on the scene itself: its torque limit and control period stay.
         scene = eqx.tree_at(
             lambda s: s.disturbance, scene, jnp.zeros(3, dtype), is_leaf=lambda a: a is None
+        )
+    if "max_torque" in names and scene.max_torque is None:
+        # No limit until a run sets one; the saved M_cmd appears as with a limit built in.
+        scene = eqx.tree_at(
+            lambda s: s.max_torque, scene, np.full(3, np.inf, dtype), is_leaf=lambda a: a is None
         )
     if "reference_amplitude" in names:
         scene = eqx.tree_at(
@@ -182,4 +231,117 @@ def apply_params(scene: Tracking, values: Mapping[str, Array]) -> Tracking:
             scene,
             jnp.asarray(values["reference_amplitude"], dtype),
         )
+    if "max_torque" in values:
+        scene = eqx.tree_at(lambda s: s.max_torque, scene, jnp.asarray(values["max_torque"], dtype))
+    return scene
+
+
+# --------------------------------------------------------------------------
+# The quadrotor's parameters
+# --------------------------------------------------------------------------
+
+
+def _wind_mean(wind) -> bool:
+    """Whether a wind model ``t -> w(t)`` carries its mean as a ``mean`` array of shape (3,)."""
+    mean = getattr(wind, "mean", None)
+    return eqx.is_array(mean) and np.shape(mean) == (3,)
+
+
+def prepare_quadrotor(scene, values: Mapping[str, np.ndarray]):
+    """The quadrotor checked against the parameters' values, with the slots they need.
+
+    ``thrust_max``/``thrust_to_weight`` and ``time_constant`` vary the scene's
+    `Rotors` (``time_constant``: rotors built with one, so that their thrusts are
+    state); ``wind_speed`` needs ``drag`` and sets a constant wind (a slot of zeros
+    when the scene has none), or the ``mean`` of a wind model that has one. A
+    ``ValueError`` names the parameter and says how to build the scene otherwise.
+
+    **Arguments:**
+
+    - `scene`: a `Quadrotor`.
+    - `values`: name -> the checked values, `(n, ...)` (`check_params`, `draw`).
+
+    **Returns:** the scene, with a wind slot where ``wind_speed`` needs one.
+    """
+    names = set(values)
+    thrust = [n for n in ("thrust_max", "thrust_to_weight") if n in names]
+    if len(thrust) > 1:
+        raise ValueError(
+            "params: give thrust_max or thrust_to_weight (= 4 thrust_max / (m g)), not both"
+        )
+    rotors = scene.rotors
+    for name in thrust + [n for n in ("time_constant",) if n in names]:
+        if rotors is None:
+            raise ValueError(
+                f"params[{name!r}] varies the rotors: build the scene with "
+                "scenes.quadrotor(..., rotors=so3jax.Rotors(arm, torque_coefficient, ...))"
+            )
+    if "time_constant" in names and not rotors.lagged:
+        raise ValueError(
+            "params['time_constant'] varies the rotor lag, and the scene has none: it must be "
+            "built with one, scenes.quadrotor(..., rotors=so3jax.Rotors(..., time_constant=tau)), "
+            "so that the rotor thrusts are state"
+        )
+    if thrust:
+        name = thrust[0]
+        mg = float(np.asarray(scene.vehicle.mass, np.float64) * np.asarray(scene.vehicle.g))
+        v = np.asarray(values[name], np.float64)
+        f_max = v * (mg / 4.0) if name == "thrust_to_weight" else v
+        hover = v < 1.0 if name == "thrust_to_weight" else 4.0 * v < mg
+        if np.any(hover):
+            raise ValueError(
+                f"params[{name!r}] must let the rotors hover the vehicle (4 thrust_max >= m g "
+                f"= {mg:g} N, thrust_to_weight >= 1), got min {v.min():g}"
+            )
+        lo = float(np.asarray(rotors.thrust_min, np.float64))
+        if np.any(f_max <= lo):
+            raise ValueError(
+                f"params[{name!r}] must give a thrust_max above the rotors' thrust_min "
+                f"({lo:g} N), got a thrust_max of {f_max.min():g} N"
+            )
+    if "wind_speed" in names:
+        if scene.drag is None:
+            raise ValueError(
+                "params['wind_speed'] acts through the drag: build the scene with "
+                "scenes.quadrotor(..., drag=d)"
+            )
+        if scene.wind is None:
+            dtype = scene.y0.R.dtype
+            scene = eqx.tree_at(
+                lambda s: s.wind, scene, np.zeros(3, dtype), is_leaf=lambda a: a is None
+            )
+        elif callable(scene.wind) and not _wind_mean(scene.wind):
+            raise ValueError(
+                "params['wind_speed'] sets a constant mean wind, and the scene's wind is a "
+                "function t -> w(t) without a `mean` array: build the scene with a constant "
+                "wind (or none) to sweep it"
+            )
+    return scene
+
+
+def apply_quadrotor_params(scene, values: Mapping[str, Array]):
+    """The quadrotor with one value of each parameter (traceable: works under `vmap`).
+
+    ``thrust_to_weight`` ``r`` sets ``thrust_max = r m g / 4``. ``Omega0`` is applied
+    by the caller (it is part of the initial state); the lagged rotor thrusts and a
+    held control start anew from the run's initial state (`Quadrotor.for_step`).
+    """
+    dtype = scene.y0.R.dtype
+    f_max = None
+    if "thrust_max" in values:
+        f_max = jnp.asarray(values["thrust_max"], dtype)
+    elif "thrust_to_weight" in values:
+        v = scene.vehicle
+        f_max = jnp.asarray(values["thrust_to_weight"], dtype) * (v.mass * v.g / 4.0)
+    if f_max is not None:
+        scene = eqx.tree_at(lambda s: s.rotors.thrust_max, scene, f_max)
+    if "time_constant" in values:
+        tau = jnp.asarray(values["time_constant"], dtype)
+        scene = eqx.tree_at(lambda s: s.rotors.time_constant, scene, tau)
+    if "wind_speed" in values:
+        w = jnp.asarray(values["wind_speed"], dtype)
+        if callable(scene.wind):
+            scene = eqx.tree_at(lambda s: s.wind.mean, scene, w)
+        else:
+            scene = eqx.tree_at(lambda s: s.wind, scene, w)
     return scene
