@@ -70,8 +70,9 @@ def simulate(
       scalar component a contiguous batch array, a few fused kernels per step;
       ``benchmarks/throughput.py`` measures it). Through up to
       the engine policy's ``forward_jacobian_max`` differentiated scalars it differentiates a
-      run in one pass with its Jacobian's columns; through more, with the engine's
-      tangent program and its discrete adjoint (`so3jax._engine.derivatives`).
+      run in one pass with its Jacobian's columns; through more, with JAX's ``jvp`` in
+      forward mode and the engine's discrete adjoint in reverse mode
+      (`so3jax._engine.derivatives`).
       ``True`` / ``False`` force the scalarized /
       array forward program whatever the batching (for benchmarks); a step with
       an operation the scalarizer does not handle (a loop, dynamic indexing)

@@ -71,8 +71,8 @@ def run(
       batching, derivatives from JAX's ``jvp`` of the checkpointed array
       program: for benchmarks); ``"autodiff"`` (the checkpointed array
       program, differentiated and batched by JAX alone: the reference);
-      ``"adjoint"`` (derivatives from the engine's tangent program and, in
-      reverse mode, always its discrete adjoint; layouts per the policy).
+      ``"adjoint"`` (reverse mode always the engine's discrete adjoint,
+      `so3jax._engine.derivatives.CheckpointedAdjoint`; layouts per the policy).
 
     **Returns:** ``(observations, final carry)``; every observation leaf has a
     leading axis of length ``n_steps // save_every`` (the states after steps

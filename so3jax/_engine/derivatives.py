@@ -198,8 +198,8 @@ class CheckpointedAdjoint(Strategy):
             return _pick(nz, _fill(floats, gP + gc, [None] * len(floats)))
 
         # Forward mode (``jacfwd``, `so3jax.tune`'s default through a dozen gains) is JAX's
-        # jvp of the checkpointed program: the engine's tangent program through this many
-        # scalars ran about as fast and compiled several times longer.
+        # jvp of the checkpointed program: a tangent program of the engine's own through
+        # this many scalars ran about as fast and compiled several times longer.
         plain = _float_tangent(loop.fwd_checkpointed, treedef, nz, out_nz)
         xs, ts = _pick(nz, p_leaves), _pick(nz, t_leaves)
         tan = _linear_tangent(

@@ -140,7 +140,7 @@ def _tangent_masks(step, P, c0, nz_P: list, nz_c: list, elements: bool = False) 
     carry leaf is masked if its initial tangent is nonzero or a step makes it
     depend on a masked leaf (a fixed point over the step's jaxpr): with the
     gains differentiated, the reference attitude, the time and the status stay
-    out of the tangent program.
+    out of the derivative programs.
 
     ``elements=True`` adds a third result: per leaf of ``(P, c0)`` (every leaf), the
     element mask of what can have a nonzero tangent, from the same fixed point run
