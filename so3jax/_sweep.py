@@ -26,7 +26,10 @@ be on a shared file system.
 
 Attitude ``i`` is drawn from ``jax.random.fold_in(key, i)``: it does not depend
 on the number of attitudes, and every gain pair sees the same attitudes (common
-random numbers, so differences between gains are not sampling noise).
+random numbers, so differences between gains are not sampling noise). A scene with
+sensor noise (`SensorNoise`) draws it, in every run from attitude ``i``, from
+``noise_key(key, i) = fold_in(fold_in(key, i), 2**31 - 1)`` in place of its own key:
+common random numbers again, across gain pairs and parameter combinations.
 
 A run that stops being finite is re-run, right after its chunk, at a smaller
 step known to be stable for its gains (`so3jax.stable_dt`; halvings of ``dt``
@@ -540,9 +543,17 @@ def _run_metrics(
     W0,
     pv=None,
     scalarize=False,
+    run_key=None,
 ):
-    """One run's statistics, as the scene's sweep hook takes them (`so3jax._sweep_hooks`)."""
-    return sweep_hook(scene).run(
+    """One run's statistics, as the scene's sweep hook takes them (`so3jax._sweep_hooks`).
+
+    ``run_key``: the run's key for the scene's `SensorNoise` (`noise_key`), or ``None``
+    for a scene without noise.
+    """
+    hook = sweep_hook(scene)
+    if run_key is not None:
+        scene = hook.with_noise_key(scene, run_key)
+    return hook.run(
         scene, method, dt, n_steps, save_every, threshold, weights, k_R, k_O, R0, W0, pv, scalarize
     )
 
@@ -562,11 +573,33 @@ def _run_chunk(
     W0,
     pv=None,
     scalarize=False,
+    noise=None,
 ):
-    fn = lambda a, b, c, d, e: _run_metrics(
-        scene, method, dt, n_steps, save_every, threshold, weights, a, b, c, d, e, scalarize
-    )
-    return jax.vmap(fn)(k_R, k_O, R0, W0, pv)
+    """A chunk of runs, vmapped. ``noise``: ``(key, attitude)`` for a scene with sensor
+    noise (the sweep's key, and each run's attitude index, `(B,)`: the run draws from
+    ``noise_key(key, attitude)``), ``None`` otherwise (the program of a scene without)."""
+    key, attitude = (None, None) if noise is None else noise
+    fn = lambda a, b, c, d, e, i: _run_metrics(
+        scene, method, dt, n_steps, save_every, threshold, weights, a, b, c, d, e, scalarize,
+        None if i is None else noise_key(key, i),
+    )  # fmt: skip
+    return jax.vmap(fn)(k_R, k_O, R0, W0, pv, attitude)
+
+
+#: The slot of an attitude's key that seeds its runs' sensor noise (`noise_key`); slots
+#: 0, 1 and ``2 + k`` draw its attitude, its rate and parameter ``k``'s distribution.
+NOISE_SLOT = 2**31 - 1
+
+
+def noise_key(key, attitude):
+    """The `SensorNoise` key of the runs from attitude ``a`` of a sweep with key ``key``.
+
+    ``fold_in(fold_in(key, a), NOISE_SLOT)``, ``NOISE_SLOT = 2**31 - 1``: it depends on
+    the attitude alone, so every gain pair and every parameter combination run from
+    attitude ``a`` reads the same noise (common random numbers, as for the attitudes),
+    and it does not depend on the number of attitudes, the chunks or the devices.
+    """
+    return jax.random.fold_in(jax.random.fold_in(key, attitude), NOISE_SLOT)
 
 
 def _sharded(x: np.ndarray, sharding) -> Array:
@@ -695,6 +728,9 @@ def _fingerprint(config: dict, scene, method) -> str:
         h.update(repr(jax.tree.structure(arrays)).encode())
         h.update(repr(static).encode())
         for leaf in jax.tree.leaves(arrays):
+            if jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key):  # a `SensorNoise` key
+                h.update(str(jax.random.key_impl(leaf)).encode())
+                leaf = jax.random.key_data(leaf)
             leaf = np.asarray(leaf)
             h.update(str(leaf.dtype).encode() + leaf.tobytes())
     return h.hexdigest()
@@ -769,7 +805,15 @@ def sweep(
       `so3jax._sweep_hooks`: its parameters, start, statistics and step limit).
     - `k_R`, `k_Omega`: gains, shape `(a,)` and `(b,)` (``grid=True``: all
       ``a * b`` pairs) or both `(G,)` / `(G, 3)` (``grid=False``: a list of pairs).
-    - `key`: a JAX PRNG key or an int seed for the initial states.
+    - `key`: a JAX PRNG key or an int seed for the initial states, and for the sensor
+      noise of a scene built with ``noise=SensorNoise(...)``: the runs from attitude
+      ``a`` read the noise of key ``fold_in(fold_in(key, a), 2**31 - 1)`` (the scene's
+      own noise key is not used). Every gain pair and every parameter combination from
+      attitude ``a`` reads the same draws (common random numbers, as they start from the
+      same attitude), so their differences are not sampling noise; different attitudes
+      read independent noise. A run is reproduced by `simulate` of the scene started
+      there with that key; it does not depend on the chunks, the devices or
+      `n_attitudes`.
     - `n_attitudes`: ``N``, initial attitudes per gain pair.
     - `grid`: cross `k_R` with `k_Omega` (``True``) or pair them (``False``).
     - `method`: a Lie-group method (default `RKMK4()`).
@@ -787,12 +831,14 @@ def sweep(
       rotors hover, with a scene built with ``rotors=so3jax.Rotors(...)``;
       ``time_constant`` (`(P,)`, > 0, the rotor lag in s; rotors built with a time
       constant, so that their thrusts are state); and ``wind_speed`` (`(P, 3)`, a
-      constant mean wind in m/s, world frame; a scene with ``drag``). Every
-      combination runs from every initial attitude: ``N = P * n_attitudes`` columns,
-      keyed by name in `SweepResult.params`. A value may instead be a distribution,
-      a function ``key -> value``, drawn once per initial attitude. A wrong name,
-      shape or value, or a parameter the scene cannot take, raises a ``ValueError``
-      naming it.
+      constant mean wind in m/s, world frame; a scene with ``drag``). Either kind of
+      scene built with ``noise=SensorNoise(...)`` takes ``noise_scale`` (`(P,)`,
+      >= 0: a factor on all of its noise's standard deviations; 0 is the noise-free
+      run, to round-off). Every combination runs from every initial attitude:
+      ``N = P * n_attitudes`` columns, keyed by name in `SweepResult.params`. A value
+      may instead be a distribution, a function ``key -> value``, drawn once per
+      initial attitude. A wrong name, shape or value, or a parameter the scene cannot
+      take, raises a ``ValueError`` naming it.
     - `param_grid`: cross the `params` arrays (``True``) or zip them (``False``:
       the same length, e.g. samples drawn from a distribution).
     - `threshold`: settling threshold on ``Psi = 1 - cos(angle)`` (0.01: 8.1 degrees).
@@ -876,6 +922,9 @@ def sweep(
     P = next(iter(prows.values())).shape[0] if prows else 1
     drawn = draw(dists, key, n_att)
     scene = hook.prepare(scene, {**prows, **drawn})
+    noisy = getattr(scene, "noise", None) is not None  # one noise key per run (`noise_key`)
+    if noisy:  # the scene's own key is not used (nor fingerprinted): the runs' replace it
+        scene = hook.with_noise_key(scene, key)
     run_threshold, position_threshold = hook.thresholds(threshold, position_threshold)
     # Column i = p * n_att + a: combination p of the parameter arrays, from attitude a
     # (distributions are sampled per attitude a).
@@ -895,7 +944,8 @@ def sweep(
     stable_run = st.reshape(-1)
     n_runs = G * n_att
     n_dev = len(devices)
-    if scalarize is None:
+    chosen = scalarize is None  # the policy's choice, not the caller's: fall back silently
+    if chosen:
         scalarize = sweep_scalarize(devices)
     if chunk_size is None:  # the fewest chunks of equal size, not full ones and a padded last
         n_saved, itemsize = n_steps // save_every + 1, jnp.dtype(dtype).itemsize
@@ -954,19 +1004,27 @@ def sweep(
             W0[i_idx[rows]],
             {k: v[i_idx[rows]] for k, v in pv_cols.items()},
         )
+        if noisy:  # each run's attitude index, from which its noise key is drawn
+            args = args + (col_a[i_idx[rows]].astype(np.int32),)
         args = jax.tree.map(lambda a: _sharded(a, sharding), args)
+        noise = (key, args[5]) if noisy else None
+        args = args[:5]
         f = 2**level
-        out = _run_chunk(
-            scene,
-            method,
-            dt / f,
-            n_steps * f,
-            save_every * f,
-            run_threshold,
-            weights,
-            *args,
-            bool(scalarize),
-        )
+        with warnings.catch_warnings():
+            if chosen:  # a step the scalarizer does not take (random draws) runs as arrays
+                warnings.filterwarnings("ignore", "scalarize: .*running the array program")
+            out = _run_chunk(
+                scene,
+                method,
+                dt / f,
+                n_steps * f,
+                save_every * f,
+                run_threshold,
+                weights,
+                *args,
+                bool(scalarize),
+                *(() if noise is None else (noise,)),  # (a scene without noise: the same call)
+            )
         return _to_host(out)
 
     parts: list[dict] = []

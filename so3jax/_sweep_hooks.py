@@ -10,6 +10,8 @@ without one):
 - `check`: whether the scene can be swept at all;
 - `prepare`: the values checked against the scene and the slots they need added, once;
   `apply`: one run's values put into the scene (traceable, under `vmap`);
+- `with_noise_key`: one run's key put into the scene's `SensorNoise` (a scene with
+  ``noise``; `so3jax._sweep.noise_key`);
 - `initial_rate`: the scene's own ``Omega0``, around which the runs' rates are drawn;
 - `stable_dt`: the step limit per gain pair and column, which tells a numerical failure
   from a diverged closed loop;
@@ -98,6 +100,10 @@ class SweepHook:
         """The scene with one run's parameter values (``Omega0`` apart; traceable)."""
         return scene
 
+    def with_noise_key(self, scene, key):
+        """The scene whose `SensorNoise` draws from ``key`` (one run's key, traceable)."""
+        return eqx.tree_at(lambda s: s.noise.key, scene, key)
+
     def initial_rate(self, scene):
         """The scene's initial body rate ``Omega0``, shape `(3,)`."""
         return scene.y0.x[:3]
@@ -140,6 +146,7 @@ class AttitudeSweep(SweepHook):
         "Omega0",
         "reference_amplitude",
         "max_torque",
+        "noise_scale",
     )
     hint: ClassVar[str] = (
         " (thrust_max, thrust_to_weight, time_constant and wind_speed vary a quadrotor)"
@@ -213,6 +220,7 @@ class QuadrotorSweep(SweepHook):
         "thrust_to_weight",
         "time_constant",
         "wind_speed",
+        "noise_scale",
     )
     hint: ClassVar[str] = " (vary the rest of the vehicle by building scenes with scenes.quadrotor)"
 

@@ -13,6 +13,9 @@ A sweep's ``params`` maps names to arrays whose leading axis lists values:
   `(P,)`.
 - ``max_torque``: the actuators' torque limit in N m per body axis, `(P,)` (the same
   on every axis) or `(P, 3)`, every entry > 0 (`scenes.tracking`'s ``max_torque``).
+- ``noise_scale``: a factor ``c >= 0`` on every standard deviation of the scene's
+  `SensorNoise` (``sigma -> c sigma``), `(P,)`; a scene built with ``noise`` (attitude
+  scenes and quadrotors alike). ``c = 0`` is the noise-free run (to round-off).
 
 A quadrotor (`prepare_quadrotor`, `apply_quadrotor_params`) takes ``Omega0`` and
 
@@ -24,6 +27,7 @@ A quadrotor (`prepare_quadrotor`, `apply_quadrotor_params`) takes ``Omega0`` and
   have a time constant, so that their thrusts are state).
 - ``wind_speed``: a constant mean wind in m/s, world frame, `(P, 3)` (a scene with
   ``drag``).
+- ``noise_scale``, as for an attitude scene.
 
 Which parameters a scene takes is its sweep hook's (`so3jax._sweep_hooks`).
 
@@ -62,6 +66,7 @@ PARAMS = {
     "thrust_to_weight": (),
     "time_constant": (),
     "wind_speed": (3,),
+    "noise_scale": (),
 }
 
 #: What each parameter is, and its unit ("" for a pure number): axis labels of plots.
@@ -75,6 +80,7 @@ PARAM_LABELS = {
     "thrust_to_weight": ("thrust-to-weight ratio 4 thrust_max / (m g)", ""),
     "time_constant": ("rotor time constant", "s"),
     "wind_speed": ("mean wind", "m/s"),
+    "noise_scale": ("sensor noise scale", "x the scene's SensorNoise std"),
 }
 
 #: Parameters given per body axis: a scalar value stands for the same on all three.
@@ -87,6 +93,8 @@ _POSITIVE = {
     "thrust_to_weight": "4 thrust_max / (m g)",
     "time_constant": "a rotor time constant in s",
 }
+#: Parameters whose every entry must be >= 0, with what a value is.
+_NONNEGATIVE = {"noise_scale": "a factor on the scene's SensorNoise standard deviations"}
 
 
 class Disturbed(Tracking):
@@ -126,6 +134,10 @@ def _validate(name: str, value, leading: str) -> np.ndarray:
         raise ValueError(f"params[{name!r}] must be finite")
     if name in _POSITIVE and np.any(v <= 0):
         raise ValueError(f"params[{name!r}] must be > 0 ({_POSITIVE[name]}), got min {v.min():g}")
+    if name in _NONNEGATIVE and np.any(v < 0):
+        raise ValueError(
+            f"params[{name!r}] must be >= 0 ({_NONNEGATIVE[name]}), got min {v.min():g}"
+        )
     return v
 
 
@@ -186,9 +198,32 @@ def check_params(params: Mapping | None, grid: bool) -> dict[str, np.ndarray]:
     return out
 
 
+def _check_noisy(scene, names) -> None:
+    """``ValueError`` when ``noise_scale`` is among ``names`` and the scene has no noise."""
+    if "noise_scale" in names and getattr(scene, "noise", None) is None:
+        raise ValueError(
+            "params['noise_scale'] scales the scene's sensor noise, and the scene has none: "
+            "build it with noise=so3jax.SensorNoise(..., key=...) (nonzero standard "
+            "deviations) and a control_period"
+        )
+
+
+def _scale_noise(scene, scale):
+    """The scene with every standard deviation of its `SensorNoise` times ``scale``."""
+    fields = ("attitude", "rate", "position", "velocity")
+    noise = scene.noise
+    c = jnp.asarray(scale, scene.y0.R.dtype)
+    return eqx.tree_at(
+        lambda s: tuple(getattr(s.noise, f) for f in fields),
+        scene,
+        tuple(c * getattr(noise, f) for f in fields),
+    )
+
+
 def prepare_scene(scene: Tracking, names) -> Tracking:
     """The scene with the slots the named parameters need (a disturbance, a torque limit,
-    a scaled reference)."""
+    a scaled reference); ``noise_scale`` needs a scene built with noise."""
+    _check_noisy(scene, names)
     dtype = scene.y0.R.dtype
     if "disturbance" in names and scene.disturbance is None:
         # A slot on the scene itself: its torque limit and control period stay.
@@ -233,6 +268,8 @@ def apply_params(scene: Tracking, values: Mapping[str, Array]) -> Tracking:
         )
     if "max_torque" in values:
         scene = eqx.tree_at(lambda s: s.max_torque, scene, jnp.asarray(values["max_torque"], dtype))
+    if "noise_scale" in values:
+        scene = _scale_noise(scene, values["noise_scale"])
     return scene
 
 
@@ -253,8 +290,9 @@ def prepare_quadrotor(scene, values: Mapping[str, np.ndarray]):
     ``thrust_max``/``thrust_to_weight`` and ``time_constant`` vary the scene's
     `Rotors` (``time_constant``: rotors built with one, so that their thrusts are
     state); ``wind_speed`` needs ``drag`` and sets a constant wind (a slot of zeros
-    when the scene has none), or the ``mean`` of a wind model that has one. A
-    ``ValueError`` names the parameter and says how to build the scene otherwise.
+    when the scene has none), or the ``mean`` of a wind model that has one;
+    ``noise_scale`` needs a scene built with ``noise``. A ``ValueError`` names the
+    parameter and says how to build the scene otherwise.
 
     **Arguments:**
 
@@ -264,6 +302,7 @@ def prepare_quadrotor(scene, values: Mapping[str, np.ndarray]):
     **Returns:** the scene, with a wind slot where ``wind_speed`` needs one.
     """
     names = set(values)
+    _check_noisy(scene, names)
     thrust = [n for n in ("thrust_max", "thrust_to_weight") if n in names]
     if len(thrust) > 1:
         raise ValueError(
@@ -344,4 +383,6 @@ def apply_quadrotor_params(scene, values: Mapping[str, Array]):
             scene = eqx.tree_at(lambda s: s.wind.mean, scene, w)
         else:
             scene = eqx.tree_at(lambda s: s.wind, scene, w)
+    if "noise_scale" in values:
+        scene = _scale_noise(scene, values["noise_scale"])
     return scene
