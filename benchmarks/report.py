@@ -1087,6 +1087,72 @@ def ablation(R: Results) -> str:
     return "\n".join(lines) + "\n"
 
 
+@block("vehicle")
+def vehicle(R: Results) -> str:
+    names = R.family("vehicle")
+    if not names:
+        return not_measured("vehicle.py") + "\n"
+    base = "plain"
+    columns = [(n, dt) for n in names for dt in R.get(n)["dtypes"]]
+    by = {(n, r["dtype"], r["config"]): r for n in names for r in R.get(n)["rows"]}
+    configs = list(dict.fromkeys(c for n in names for c in R.get(n)["configs"]))
+
+    def cell(name, dtype, config):
+        r, b = by.get((name, dtype, config)), by.get((name, dtype, base))
+        if r is None or b is None:
+            return NOT_MEASURED
+        if config == base:
+            return (
+                f"{rate(r['body_steps_per_s'])} body-steps/s, {r['layout']} program, "
+                f"compile {dur(r['compile_s'])}"
+            )
+        lo, hi = (x(v) for v in r["ratio_range"])
+        text = f"**{x(r['ratio'])}**" + ("" if lo == hi else f" ({lo[:-1]}–{hi})")
+        text += f", compile {x(r['compile_ratio'])}"
+        if r["same_program_as_plain"]:
+            text += ", same program"
+        elif r["layout"] != b["layout"]:
+            text += f", {r['layout']} program"
+        return text
+
+    head = [f"{device(R.get(n))}, {dt}" for n, dt in columns]
+    rows = [[c, *(cell(n, dt, c) for n, dt in columns)] for c in configs]
+    lines = table(["configuration", *head], rows)
+    d = R.get(names[0])
+    target = d["target"]
+    text = (
+        f"{d['batch']} hover runs of the paper's vehicle from random attitudes, "
+        f"{d['n_steps']} steps of {num(d['dt'])} s, {d['method']}, control sampled every "
+        "step (`vehicle.py` lists each configuration's models). First row: the plain "
+        "quadrotor's body-steps/s, the layout of its batch and its compile time; other rows: "
+        "the fastest call over the plain quadrotor's in the same dtype, in brackets the "
+        "middle half of that ratio over the rounds (at least "
+        f"{min(len(r['rounds']) for n in names for r in R.get(n)['rows'])}, every "
+        "configuration of both dtypes alternated in each), and the compile time over the "
+        "plain one's. *Same program*: XLA compiled the plain quadrotor's very program (the "
+        "difference is noise)."
+    )
+    verdicts = []
+    for n, dt in columns:
+        full = by.get((n, dt, "full vehicle"))
+        if full is not None:
+            met = "met" if full["ratio"] <= target else "not met"
+            verdicts.append(f"{device(R.get(n))}, {dt}: {x(full['ratio'])}, {met}")
+    if verdicts:
+        text += f" Target: the full vehicle at most {x(target)} the plain quadrotor; "
+        text += "; ".join(verdicts) + "."
+    why: dict[str, list[str]] = {}  # the engine's reason -> the configurations it moved
+    for n in names:
+        for r in R.get(n)["rows"]:
+            if r.get("layout_why") and r["layout"] != by[(n, r["dtype"], base)]["layout"]:
+                why.setdefault(r["layout_why"], []).append(r["config"])
+    if why:
+        said = "; ".join(f"{', '.join(dict.fromkeys(cs))}: {w}" for w, cs in sorted(why.items()))
+        text += f" Where a model moves the batch to another program, the engine says why ({said})."
+    lines += ["", f"{text} {sources(names)}"]
+    return "\n".join(lines) + "\n"
+
+
 # ---------------------------------------------------------------------------------------
 # Rewriting the Markdown files
 

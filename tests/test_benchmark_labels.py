@@ -119,3 +119,34 @@ def test_unrolled_step_loops_change_the_program_not_the_results():
         assert lowered_size() > size  # the step (a called function) appears 3 times
         np.testing.assert_allclose(run(scene), plain, rtol=0, atol=1e-13)
     assert _engine.policy.current().scan_unroll == 1 and lowered_size() == size
+
+
+def test_vehicle_configurations_hold_their_models():
+    """`vehicle.py`'s "plain, models off" (every model given, off) traces the very program
+    of the plain quadrotor; "full vehicle" holds every model, and "rotors" only its own."""
+    import jax
+    import jax.numpy as jnp
+
+    import so3jax as s
+
+    veh = _bench_module("vehicle")
+    n, dtype = 3, jnp.float64
+    args = veh["inputs"](4, n, dtype)
+
+    def scene(config):
+        return veh["scene"](config, dtype, n * veh["DT"])
+
+    def jaxpr(config):
+        try:
+            return str(jax.make_jaxpr(veh["batch"](scene(config), n))(*args))
+        finally:
+            jax.clear_caches()  # (the engine's choices are made when a program is traced)
+
+    plain = jaxpr("plain")
+    assert jaxpr("plain, models off") == plain
+    assert jaxpr("rotors") != plain
+    full, rotors = scene("full vehicle"), scene("rotors")
+    assert full.rotors.lagged and full.integral and full.drag is not None
+    assert isinstance(full.wind, s.Gust) and full.noise is not None
+    assert not rotors.rotors.lagged and rotors.drag is None and rotors.wind is None
+    assert not rotors.integral and getattr(rotors, "noise", None) is None

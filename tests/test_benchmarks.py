@@ -218,3 +218,21 @@ def test_ablation_quick(tmp_path):
     assert none["max_rel_diff"] < 1e-12
     for r in rows.values():
         assert r["run_s"] == r["run_s_range"][0] == min(r["rounds"]) > 0 and r["compile_s"] > 0
+
+
+@pytest.mark.slow
+def test_vehicle_quick(tmp_path):
+    """The plain quadrotor is the baseline of every ratio in its dtype, measured in the same
+    rounds; the full vehicle compiles another program, and its runs stay finite."""
+    res = _run("vehicle.py", tmp_path)
+    rows = {(r["dtype"], r["config"]): r for r in res["rows"]}
+    assert set(rows) == {("float32", "plain"), ("float32", "full vehicle")}
+    plain, full = rows[("float32", "plain")], rows[("float32", "full vehicle")]
+    assert plain["ratio"] == 1.0 and plain["same_program_as_plain"]
+    assert not full["same_program_as_plain"]
+    assert full["ratio"] == pytest.approx(full["run_s"] / plain["run_s"])
+    assert len(full["rounds"]) == len(plain["rounds"]) == len(full["ratio_rounds"])
+    for r in rows.values():
+        assert r["run_s"] == min(r["rounds"]) > 0 and r["compile_s"] > 0
+        assert r["body_steps_per_s"] == pytest.approx(res["batch"] * res["n_steps"] / r["run_s"])
+        assert r["finite_fraction"] == 1.0 and r["layout"] in ("array", "scalarized")
