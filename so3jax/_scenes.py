@@ -385,6 +385,12 @@ class NoisyTracking(SampledTracking):
 
     noise: SensorNoise | None = None
 
+    def for_step(self, dt, t0):
+        """`for_step` of the scene without noise's, with the noise's key as raw words
+        (`SensorNoise.unwrapped`): the step draws by integer arithmetic alone."""
+        scene = super().for_step(dt, t0)
+        return eqx.tree_at(lambda s: s.noise, scene, scene.noise.unwrapped())
+
 
 def _cast_floats(tree, dtype):
     """Every float array of ``tree`` as a (strongly typed) array of ``dtype``.

@@ -8,12 +8,19 @@ reads, in place of the true state,
 
 with independent Gaussian ``xi ~ N(0, diag(sigma^2))`` per axis: the attitude error
 is a Gaussian tangent in the body frame (the "concentrated Gaussian" on SO(3) of
-Barfoot & Furgale), the others additive. The draws of sample ``k`` come from
-``jax.random.fold_in(key, k)``: a run is reproducible from its key, whatever the
-integrator or the number of steps per hold. The plant is not perturbed.
+Barfoot & Furgale), the others additive. The plant is not perturbed.
+
+The draws are counter-based: the twelve numbers of sample ``k`` are the Threefry-2x32
+hash of the counters ``(j, k)`` under the key's two words (`threefry2x32`), each
+word's top 24 bits a uniform ``u`` and ``sqrt(2) erfinv(2 u - 1)`` its normal. A run
+is reproducible from its key, whatever the integrator or the number of steps per hold,
+and the draws are elementwise integer arithmetic, which a batch runs in the engine's
+scalarized program (random primitives would not be).
 
 References: T. D. Barfoot, P. T. Furgale, "Associating uncertainty with
-three-dimensional poses for use in estimation problems", IEEE T-RO 30(3), 2014.
+three-dimensional poses for use in estimation problems", IEEE T-RO 30(3), 2014;
+J. K. Salmon, M. A. Moraes, R. O. Dror, D. E. Shaw, "Parallel random numbers: as easy
+as 1, 2, 3", SC 2011 (Threefry).
 """
 
 from __future__ import annotations
@@ -29,6 +36,47 @@ from ._types import Array, ArrayLike
 
 _FIELDS = ("attitude", "rate", "position", "velocity")
 _UNITS = {"attitude": "rad", "rate": "rad/s", "position": "m", "velocity": "m/s"}
+
+
+_ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))  # Threefry-2x32's, Salmon et al. Table 4
+
+
+def _rotl(x, r: int):
+    return (x << np.uint32(r)) | (x >> np.uint32(32 - r))
+
+
+def threefry2x32(k0, k1, x0, x1):
+    """Threefry-2x32 with 20 rounds (Salmon et al., SC 2011): the pair of uint32 words
+    ``(x0, x1)`` hashed under the key ``(k0, k1)``; elementwise, so any broadcastable
+    shapes. The same function as JAX's own ``threefry_2x32``."""
+    k0, k1, x0, x1 = (jnp.asarray(a, jnp.uint32) for a in (k0, k1, x0, x1))
+    ks = (k0, k1, k0 ^ k1 ^ np.uint32(0x1BD11BDA))
+    x0, x1 = x0 + ks[0], x1 + ks[1]
+    for i in range(5):
+        for r in _ROTATIONS[i % 2]:
+            x0 = x0 + x1
+            x1 = _rotl(x1, r) ^ x0
+        x0 = x0 + ks[(i + 1) % 3]
+        x1 = x1 + ks[(i + 2) % 3] + np.uint32(i + 1)
+    return x0, x1
+
+
+def _key_words(key):
+    """The key's first two uint32 words (a typed key's data, or a raw ``PRNGKey``)."""
+    if jax.dtypes.issubdtype(jnp.result_type(key), jax.dtypes.prng_key):
+        key = jax.random.key_data(key)
+    return key[..., 0], key[..., 1]
+
+
+def _normals(key, k, shape: tuple[int, ...], dtype):
+    """Standard normals of ``shape`` for sample ``k`` (`threefry2x32` of ``(j, k)``)."""
+    n = int(np.prod(shape))
+    j = np.arange(-(-n // 2), dtype=np.uint32)
+    k0, k1 = _key_words(key)
+    w0, w1 = threefry2x32(k0, k1, j, jnp.asarray(k).astype(jnp.uint32))
+    words = jnp.concatenate([w0, w1])[:n]
+    u = ((words >> np.uint32(8)).astype(dtype) + 0.5) * (2.0**-24)  # in (0, 1)
+    return (np.sqrt(2.0) * jax.scipy.special.erfinv(2.0 * u - 1.0)).reshape(shape)
 
 
 def _std(value, name: str) -> Array:
@@ -65,8 +113,8 @@ class SensorNoise(eqx.Module):
 
     At each sample ``k`` the controller reads ``R exp(hat(xi_R))``,
     ``Omega + xi_Omega``, ``x + xi_x``, ``v + xi_v`` instead of the true state, with
-    ``xi_* ~ N(0, sigma_*^2)`` independent per axis, drawn from
-    ``jax.random.fold_in(key, k)``. Pass it as ``noise=`` to `scenes.quadrotor` or
+    ``xi_* ~ N(0, sigma_*^2)`` independent per axis, drawn from the key and ``k``
+    (counter-based, `threefry2x32`). Pass it as ``noise=`` to `scenes.quadrotor` or
     `scenes.tracking` (which have no position or velocity: only `attitude` and `rate`
     apply), with a ``control_period``. A zero standard deviation leaves its part of
     the state exactly as it is; a scene given a `SensorNoise` whose standard
@@ -119,13 +167,20 @@ class SensorNoise(eqx.Module):
         """``(xi_R, xi_Omega, xi_x, xi_v)`` at the sample nearest ``t``, each ``batch + (3,)``.
 
         The sample index is ``k = round(t / period)``; the draws are
-        ``sigma * N(0, 1)`` from ``jax.random.fold_in(key, k)``.
+        ``sigma * N(0, 1)``, counter-based from the key and ``k`` (the module's docstring).
         """
         k = jnp.round(jnp.asarray(t, dtype) / period).astype(jnp.int32)
-        z = jax.random.normal(jax.random.fold_in(self.key, k), (*batch, 4, 3), dtype)
+        z = _normals(self.key, k, (*batch, 4, 3), dtype)
         return tuple(
             jnp.asarray(getattr(self, name), dtype) * z[..., i, :] for i, name in enumerate(_FIELDS)
         )
+
+    def unwrapped(self) -> SensorNoise:
+        """The same noise with its key as raw uint32 words: what a step reads, so that the
+        loop holds no typed key (a run's scene, `Scene.for_step`)."""
+        if not jax.dtypes.issubdtype(jnp.result_type(self.key), jax.dtypes.prng_key):
+            return self
+        return eqx.tree_at(lambda n: n.key, self, jax.random.key_data(self.key))
 
     def perturb(self, t, period, R, Omega, x=None, v=None) -> tuple[Array, ...]:
         """The state the controller sees at the sample nearest ``t``.

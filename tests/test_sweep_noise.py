@@ -202,17 +202,37 @@ def test_quadrotor_runs_equal_simulate_with_the_documented_key():
     assert r.metrics["final_position_error"][0, i] == pytest.approx(e, rel=1e-10)
 
 
-def test_default_layout_falls_back_silently(noisy):
-    """By default a CPU sweep runs scalarized; a step with random draws cannot be, and runs
-    as the array program without a warning (nobody asked for the scalarized one). Asked
-    for, the fallback is said. (Different horizons: each call traces its own program.)"""
+def test_default_layout_runs_noise_scalarized(noisy):
+    """The noise's draws are integer arithmetic, which the scalarized program takes: a CPU
+    sweep's default layout runs a noisy scene scalarized, without a warning, and equals
+    the array program's sweep to round-off."""
     import warnings
 
     kw = {k: v for k, v in KW.items() if k not in ("scalarize", "n_steps")}
     kw["n_attitudes"] = 2
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        quiet = s.sweep(noisy, K_R[:1], K_OMEGA[:1], n_steps=10, **kw)
+        fast = s.sweep(noisy, K_R[:1], K_OMEGA[:1], n_steps=10, **kw)
+    plain = s.sweep(noisy, K_R[:1], K_OMEGA[:1], n_steps=10, scalarize=False, **kw)
+    np.testing.assert_allclose(fast.cost, plain.cost, rtol=1e-12)
+
+
+def test_default_layout_falls_back_silently():
+    """A step the scalarizer does not take (a gust's table lookup) runs as the array
+    program: silently in the sweep's default layout, nobody asked for the scalarized one;
+    said where it was asked for. (Different horizons: each call traces its own program.)"""
+    import warnings
+
+    gust = s.Gust(1.0, 0.5, 0.5, duration=0.2, key=jax.random.key(0))
+    quad = scenes.quadrotor_recovery(control_period=0.01)
+    quad = scenes.quadrotor(
+        quad.vehicle.mass, quad.vehicle.body, quad.gains, quad.reference, R0=quad.y0.R[0],
+        control_period=0.01, drag=0.1, wind=gust,
+    )  # fmt: skip
+    kw = dict(n_attitudes=2, dt=0.01, key=0, progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        quiet = s.sweep(quad, [8.81], [2.54], n_steps=4, **kw)
     with pytest.warns(UserWarning, match="running the array program"):
-        said = s.sweep(noisy, K_R[:1], K_OMEGA[:1], n_steps=12, scalarize=True, **kw)
+        said = s.sweep(quad, [8.81], [2.54], n_steps=5, scalarize=True, **kw)
     assert np.all(np.isfinite(quiet.cost)) and np.all(np.isfinite(said.cost))

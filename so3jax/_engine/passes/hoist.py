@@ -72,8 +72,8 @@ _HOISTABLE = frozenset(
     ge gt integer_pow iota is_finite jit le log log1p logistic lt max min mul ne neg
     nextafter not optimization_barrier or pad pjit pow reduce_and reduce_max reduce_min
     reduce_or reduce_precision reduce_prod reduce_sum rem remat2 reshape rev round rsqrt scan
-    select_n sign sin sinh slice split sqrt square squeeze stack stop_gradient sub tan tanh
-    transpose unstack while xor""".split()
+    select_n shift_left shift_right_arithmetic shift_right_logical sign sin sinh slice split
+    sqrt square squeeze stack stop_gradient sub tan tanh transpose unstack while xor""".split()
 )
 
 

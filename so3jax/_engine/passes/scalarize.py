@@ -62,7 +62,7 @@ _ELEMENTWISE = frozenset(
     copy copy_p cos cosh div eq erf erf_inv erfc exp exp2 expm1 floor ge gt imag integer_pow
     is_finite le lgamma digamma log log1p logistic lt max min mul ne neg nextafter not or pow
     real reduce_precision rem round rsqrt select_n sign sin sinh sqrt square sub tan tanh xor
-    stop_gradient
+    stop_gradient shift_left shift_right_logical shift_right_arithmetic
     """.split()
 )
 
