@@ -25,9 +25,9 @@ sampled and held every step (``control_period = dt = 2.5 ms``):
   velocity 0.05 m/s), one key per run;
 - ``full vehicle``: lagged rotors, drag in the gust, integral action and noise;
 - ``full, constant wind, no noise``: lagged rotors, drag in the constant wind and
-  integral action: the full vehicle without the two models whose step the engine's
-  scalarized batch program does not take (the gust reads its path at a computed index,
-  the noise draws random numbers), which move a batch to the array program.
+  integral action: the full vehicle without the gust, whose step the engine's
+  scalarized batch program does not take (the gust reads its path at a computed index:
+  the batch runs the array program), and without the noise.
 
 Each is ``jax.jit(jax.vmap(run))`` over 4096 random initial attitudes, RKMK4, 400 steps
 (1 s), the final state saved, in float64 and float32 (the scene built in that dtype;

@@ -25,6 +25,8 @@ as 1, 2, 3", SC 2011 (Threefry).
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -76,7 +78,7 @@ def _normals(key, k, shape: tuple[int, ...], dtype):
     w0, w1 = threefry2x32(k0, k1, j, jnp.asarray(k).astype(jnp.uint32))
     words = jnp.concatenate([w0, w1])[:n]
     u = ((words >> np.uint32(8)).astype(dtype) + 0.5) * (2.0**-24)  # in (0, 1)
-    return (np.sqrt(2.0) * jax.scipy.special.erfinv(2.0 * u - 1.0)).reshape(shape)
+    return (math.sqrt(2.0) * jax.scipy.special.erfinv(2.0 * u - 1.0)).reshape(shape)
 
 
 def _std(value, name: str) -> Array:

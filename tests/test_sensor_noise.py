@@ -209,3 +209,41 @@ def test_no_noise_leaves_the_program_unchanged():
     assert program == jaxpr(_seed(s.SensorNoise(key=3)))
     assert "random" not in program and "threefry" not in program
     assert "random" in jaxpr(_seed(s.SensorNoise(rate=0.1, key=3)))
+
+
+def test_threefry_is_jax_s_own():
+    """The draws' hash is Threefry-2x32 as JAX computes it (`jax.extend.random`)."""
+    from jax.extend.random import threefry_2x32
+
+    from so3jax._sensors import threefry2x32
+
+    key = jnp.array([123, 456789], jnp.uint32)
+    count = jnp.arange(8, dtype=jnp.uint32) * 977
+    a, b = threefry2x32(key[0], key[1], count[:4], count[4:])
+    np.testing.assert_array_equal(jnp.concatenate([a, b]), threefry_2x32(key, count))
+
+
+def test_noisy_batch_is_scalarized_and_float32_stays_float32():
+    """A batch of noisy runs takes the scalarized program (the draws are integer
+    arithmetic) and equals the array program's runs; float32 runs stay float32."""
+    noise = s.SensorNoise(attitude=0.02, rate=0.05, key=0)
+    sc = _seed(noise)
+    keys = jax.random.split(jax.random.key(5), 16)  # the scalarized layout's threshold
+
+    def run(k, scalarize=None):
+        one = eqx.tree_at(lambda q: q.noise.key, sc, k)
+        return s.simulate(one, s.LieEuler(), DT, N_STEPS, scalarize=scalarize).Omega
+
+    plan = s.explain(jax.vmap(run), keys)
+    assert [e["layout"] for e in plan.of("layout")] == ["scalarized"], plan
+    fast = jax.jit(jax.vmap(run))(keys)
+    plain = jax.jit(jax.vmap(lambda k: run(k, False)))(keys)
+    assert np.abs(np.asarray(fast - plain)).max() < 1e-12 * np.abs(np.asarray(plain)).max()
+    seed32 = scenes.seed(dtype=jnp.float32)
+    sc32 = scenes.tracking(
+        seed32.body, s.GeometricGains(*scenes.SEED_GAINS), seed32.y0.R[0],
+        jnp.zeros(3, jnp.float32), seed32.y0.R[1], seed32.reference,
+        control_period=PERIOD, noise=noise,
+    )  # fmt: skip
+    tr = s.simulate(sc32, s.LieEuler(), DT, N_STEPS)
+    assert tr.R.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(tr.Omega)))
