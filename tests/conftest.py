@@ -96,6 +96,13 @@ _MODULE_SECONDS = {
     "test_sweep_distributed.py": 18,
     "test_benchmark_labels.py": 16,
     "test_sweep_params.py": 15,
+    "test_quadrotor_integral.py": 35,
+    "test_frames.py": 25,
+    "test_sweep_noise.py": 22,
+    "test_sweep_robustness.py": 18,
+    "test_sensor_noise.py": 14,
+    "test_rotor_allocation.py": 10,
+    "test_gust.py": 8,
 }
 
 
