@@ -202,21 +202,6 @@ def test_quadrotor_runs_equal_simulate_with_the_documented_key():
     assert r.metrics["final_position_error"][0, i] == pytest.approx(e, rel=1e-10)
 
 
-def test_default_layout_runs_noise_scalarized(noisy):
-    """The noise's draws are integer arithmetic, which the scalarized program takes: a CPU
-    sweep's default layout runs a noisy scene scalarized, without a warning, and equals
-    the array program's sweep to round-off."""
-    import warnings
-
-    kw = {k: v for k, v in KW.items() if k not in ("scalarize", "n_steps")}
-    kw["n_attitudes"] = 2
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        fast = s.sweep(noisy, K_R[:1], K_OMEGA[:1], n_steps=10, **kw)
-    plain = s.sweep(noisy, K_R[:1], K_OMEGA[:1], n_steps=10, scalarize=False, **kw)
-    np.testing.assert_allclose(fast.cost, plain.cost, rtol=1e-12)
-
-
 def test_default_layout_falls_back_silently():
     """A step the scalarizer does not take (a gust's table lookup) runs as the array
     program: silently in the sweep's default layout, nobody asked for the scalarized one;
