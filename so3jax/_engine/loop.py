@@ -11,7 +11,6 @@ is `Loop.fwd_checkpointed` differentiated and batched by JAX alone.
 
 from __future__ import annotations
 
-import functools
 import math
 
 import jax
@@ -92,8 +91,16 @@ class Loop:
         ``~ n / K + K`` steps instead of ``n``. The last segment is padded
         with blocks that leave the carry alone.
         """
-        step, obs = self.step, self.observe
         m = _segment_blocks(self.n_save, max(1, round(self.K / self.save_every)))
+        ys, cN, _ = self._in_segments(P, c0, m, checkpoint=True)
+        return ys, cN
+
+    def _in_segments(self, P, c0, m: int, checkpoint: bool = False, starts: bool = False):
+        """``(ys, cN, ck)``: `fwd_array`'s run as ``ceil(n_save / m)`` segments of ``m`` save
+        blocks (each under `jax.checkpoint` with ``checkpoint``), the last padded with
+        blocks that leave the carry alone; ``ck``: the carry at each segment's start
+        with ``starts``, else ``None``."""
+        step, obs = self.step, self.observe
         S = -(-self.n_save // m)
         padded = S * m != self.n_save
 
@@ -104,10 +111,13 @@ class Loop:
                 c1 = jax.tree.map(lambda a, b: jnp.where(i < self.n_save, a, b), c1, c)
             return c1, o
 
-        @functools.partial(jax.checkpoint, prevent_cse=False)
         def segment(c, s):
-            return jax.lax.scan(block, c, s * m + jnp.arange(m))
+            c1, ys = jax.lax.scan(block, c, s * m + jnp.arange(m))
+            return c1, ((c, ys) if starts else ys)
 
-        cN, ys = jax.lax.scan(segment, c0, jnp.arange(S))
+        if checkpoint:
+            segment = jax.checkpoint(segment, prevent_cse=False)
+        cN, out = jax.lax.scan(segment, c0, jnp.arange(S))
+        ck, ys = out if starts else (None, out)
         ys = jax.tree.map(lambda a: a.reshape((S * m,) + a.shape[2:])[: self.n_save], ys)
-        return ys, cN
+        return ys, cN, ck

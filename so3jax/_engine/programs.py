@@ -291,22 +291,7 @@ class Programs(Loop):
         forward pass (`so3jax._engine.derivatives.CheckpointedAdjoint`). Needs ``K`` a
         multiple of ``save_every``; the last segment is padded with blocks that leave the
         carry alone."""
-        step, obs, m = self.step, self.observe, self.K // self.save_every
-        padded = self.S * m != self.n_save
-
-        def block(c, i):
-            c1 = step(P, c) if self.save_every == 1 else self._repeat(lambda c: step(P, c), c)
-            o = obs(P, c1)
-            if padded:
-                c1 = jax.tree.map(lambda a, b: jnp.where(i < self.n_save, a, b), c1, c)
-            return c1, o
-
-        def segment(c, s):
-            c1, ys = jax.lax.scan(block, c, s * m + jnp.arange(m))
-            return c1, (c, ys)
-
-        cN, (ck, ys) = jax.lax.scan(segment, c0, jnp.arange(self.S))
-        ys = jax.tree.map(lambda a: a.reshape((self.S * m,) + a.shape[2:])[: self.n_save], ys)
+        ys, cN, ck = self._in_segments(P, c0, self.K // self.save_every, starts=True)
         return (ys, cN), ck
 
     def adj_array(self, mP, mc, keep, P, c0, ct_obs, ct_cN, ck=None):
