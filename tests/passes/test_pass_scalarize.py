@@ -26,3 +26,124 @@ def test_plan_shows_the_pass(case):
     assert any(e["layout"] == "scalarized" and e["program"] == "run" for e in batch), batch
     off = C.plan(case, "grad", C.NEEDS["scalarize"])
     assert off.passes == tuple(sorted(C.NEEDS["scalarize"]))
+
+
+def test_dynamic_slice_reads_a_table():
+    """``lax.dynamic_slice`` over components equals JAX's: constant, computed and batched
+    starts, slices longer than one, and starts clamped into the table as JAX clamps them."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from so3jax._engine.passes import scalarize as S
+
+    table = jnp.arange(15.0).reshape(5, 3) ** 1.5
+
+    def f(tab, i):
+        return jax.lax.dynamic_slice(tab, (i, jnp.int32(1)), (2, 2)), tab[i]
+
+    run = S.scalarize(f, table, jnp.int32(0))
+    comps = S.to_components(table)
+    for i in (-3, 0, 2, 3, 4, 9):  # concrete starts fold to slices
+        got = run(comps, S._const(np.int32(i)))
+        want = f(table, jnp.int32(i))
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(S.from_components(g), w)
+
+    traced = jax.jit(lambda i: [S.from_components(g) for g in run(comps, S.to_components(i))])
+    for i in (-3, 0, 3, 4, 9):  # computed starts select
+        for g, w in zip(traced(jnp.int32(i)), f(table, jnp.int32(i)), strict=True):
+            np.testing.assert_array_equal(g, w)
+
+    starts = jnp.array([0, 4, 2, 7], jnp.int32)  # one start per run, tables per run
+    tables = table[None] * jnp.arange(1.0, 5.0)[:, None, None]
+    batched = jax.vmap(
+        lambda tab, i: [S.from_components(g) for g in run(S.to_components(tab), S.to_components(i))]
+    )
+    for g, w in zip(batched(tables, starts), jax.vmap(f)(tables, starts), strict=True):
+        np.testing.assert_array_equal(g, w)
+
+
+def test_gust_batch_is_scalarized():
+    """A batch of quadrotors in `so3jax.Gust`s (the wind read from each run's path at a
+    computed index) is scalarized, and equals the reference; the table read's derivatives
+    are `test_table_read_under_every_transform`'s."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import so3jax as s
+    from so3jax._engine import policy
+
+    dt, n = 0.0025, 6
+    base = s.scenes.quadrotor_recovery(control_period=dt)
+    keys = jax.random.split(jax.random.key(5), C.B)
+    R0s = s.random_rotation(jax.random.key(6), (C.B,))
+
+    def batch(mu):
+        def one(key, R0):
+            gust = s.Gust(0.0, 1.5, 0.01, duration=n * dt, key=key)
+            gust = eqx.tree_at(lambda g: g.mean, gust, mu)
+            sc = s.scenes.quadrotor(
+                base.vehicle.mass, base.vehicle.body, base.gains, base.reference,
+                control_period=dt, drag=2.0, wind=gust,
+            )  # fmt: skip
+            return s.simulate(sc, s.LieEuler(), dt, n, n // 2, R0=R0).extras["v"]
+
+        return jax.vmap(one)(keys, R0s)
+
+    mu = jnp.array([4.0, -1.0, 0.5])
+    out = {}
+    for passes in (frozenset(), frozenset({"scalarize"})):
+        jax.clear_caches()  # a trace under one policy is not reused under the other
+        with policy.using(C.SMALL, passes=passes):
+            plan = s.explain(batch, mu).of("layout")
+            out[passes] = np.asarray(jax.jit(batch)(mu))
+        assert ({e["layout"] for e in plan} == {"scalarized"}) == bool(passes), plan
+    ref, got = out[frozenset()], out[frozenset({"scalarize"})]
+    assert np.ptp(ref[:, -1, 0]) > 0.01  # the runs' gusts differ
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-14)
+
+
+def test_table_read_under_every_transform():
+    """A loop whose step reads a per-run table at an index computed from its state (as a
+    `Gust` reads its path) equals the reference under ``jit``, ``vmap``, ``grad``,
+    ``jacfwd`` and ``jax.hessian``, scalarized."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import so3jax as s
+    from so3jax._engine import policy, run
+
+    tables = jnp.sin(jnp.arange(C.B * 8 * 2.0)).reshape(C.B, 8, 2)
+
+    def step(P, c):
+        (k, table), (x, i) = P, c
+        w = k[1] * table[jnp.clip(i, 0, 7)]
+        return x + 0.1 * (k[0] * w - k[1] * x * x), i + 1
+
+    def observe(P, c):
+        return jnp.sum(c[0] ** 2), c[0]
+
+    def go(k, table):
+        c0 = (jnp.zeros(2), jnp.array(0, jnp.int32))
+        return run(step, observe, (k, table), c0, C.N, C.SAVE)[0]
+
+    def mean(k):
+        return jnp.mean(jax.vmap(lambda t: jnp.sum(go(k, t)[0]))(tables))
+
+    fns = {"jit": lambda k: go(k, tables[0]), "vmap": mean, "grad": jax.grad(mean),
+           "jacfwd": jax.jacfwd(mean), "hessian": jax.hessian(mean)}  # fmt: skip
+    out = {}
+    for passes in (frozenset(), frozenset({"scalarize"})):
+        jax.clear_caches()  # a trace under one policy is not reused under the other
+        with policy.using(C.SMALL, passes=passes):
+            out[passes] = {t: jax.tree.map(np.asarray, jax.jit(f)(C.K0)) for t, f in fns.items()}
+            plan = s.explain(mean, C.K0).of("layout")
+        assert ({e["layout"] for e in plan} == {"scalarized"}) == bool(passes), plan
+    for t in fns:
+        for a, b in zip(jax.tree.leaves(out[frozenset({"scalarize"})][t]),
+                        jax.tree.leaves(out[frozenset()][t]), strict=True):  # fmt: skip
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14, err_msg=t)

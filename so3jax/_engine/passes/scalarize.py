@@ -22,9 +22,10 @@ differentiable (it is made of JAX operations).
 
 Only the primitives a vector field or a step needs are supported (elementwise
 arithmetic and transcendental functions, comparisons and `select_n`, shape
-operations, `dot_general`, sums/max/min reductions, nested `jit`, custom
-JVP/VJP calls and `cond`); anything else (loops, dynamic indexing, sorting)
-raises `NotImplementedError`, and callers fall back to the plain function.
+operations, `dynamic_slice` (a table read at a computed index), `dot_general`,
+sums/max/min reductions, nested `jit`, custom JVP/VJP calls and `cond`); anything
+else (loops, scatters and gathers, sorting) raises `NotImplementedError`, and callers
+fall back to the plain function.
 """
 
 from __future__ import annotations
@@ -274,6 +275,54 @@ def _select_branches(index, results_per_branch):
     return outs
 
 
+def _index_value(i: np.ndarray):
+    """A 0-d component array of an index as one value (a NumPy or a JAX scalar)."""
+    return i[()] if isinstance(i, np.ndarray) else i
+
+
+def _dynamic_slice(x: np.ndarray, starts: list, slice_sizes) -> np.ndarray:
+    """`lax.dynamic_slice` over components: constant starts slice, computed ones select.
+
+    A start is clamped to ``[0, n - size]`` as `lax.dynamic_slice` clamps it. Along an
+    axis with a computed start (a time read from a table: a `Gust`'s path), the
+    components along that axis are stacked into one array and indexed with JAX's
+    `dynamic_index_in_dim` (or a per-run `take_along_axis` where the start is batched):
+    one gather per output component, where a chain of selects would grow with the
+    table. The stacks depend only on ``x``, and a loop that reads a fixed table
+    computes them from its constants (XLA moves such work out of the loop).
+    """
+    out = x
+    for axis, (start, size) in enumerate(zip(starts, slice_sizes, strict=True)):
+        n = out.shape[axis]
+        s = _index_value(start)
+        if _is_const(s):
+            lo = int(np.clip(int(s), 0, n - size))
+            out = np.take(out, range(lo, lo + size), axis=axis)
+            continue
+        s = jnp.clip(jnp.asarray(s), 0, n - size)
+        moved = np.moveaxis(out, axis, 0)
+        res = _obj((size,) + moved.shape[1:])
+        for idx in np.ndindex(*moved.shape[1:]):
+            parts = [jnp.asarray(v) for v in moved[(slice(None),) + idx]]
+            shape = _bshape(parts)
+            table = jnp.stack([jnp.broadcast_to(v, shape) for v in parts])
+            for m in range(size):
+                res[(m,) + idx] = _take(table, s + m)
+        out = np.moveaxis(res, 0, axis)
+    return out
+
+
+def _take(table, i):
+    """``table[i]`` along the first axis: ``i`` a scalar, or one index per run (the
+    trailing batch shape of ``table``)."""
+    if jnp.ndim(i) == 0:
+        return jax.lax.dynamic_index_in_dim(table, i, 0, keepdims=False)
+    shape = jnp.broadcast_shapes(table.shape[1:], jnp.shape(i))
+    table = jnp.broadcast_to(table, table.shape[:1] + shape)
+    i = jnp.broadcast_to(i, shape)
+    return jnp.take_along_axis(table, i[None], axis=0)[0]
+
+
 def _eval(jaxpr, consts, args):
     env = {}
 
@@ -370,6 +419,8 @@ def _apply(eqn, ins):
         return list(np.split(x, cuts, axis=p["axis"]))
     if name == "pad":
         return _pad(x, ins[1], p["padding_config"])
+    if name == "dynamic_slice":
+        return _dynamic_slice(x, ins[1:], p["slice_sizes"])
     if name == "iota":
         return _iota(**p)
     if name == "dot_general":
@@ -409,7 +460,7 @@ def _apply(eqn, ins):
 _STRUCTURAL = frozenset(
     """
     broadcast_in_dim reshape squeeze expand_dims transpose rev slice concatenate stack unstack
-    split pad iota dot_general reduce_sum reduce_max reduce_min reduce_and reduce_or
+    split pad dynamic_slice iota dot_general reduce_sum reduce_max reduce_min reduce_and reduce_or
     reduce_prod pjit jit closed_call core_call remat remat2 checkpoint custom_jvp_call
     custom_vjp_call custom_vmap_call cond reshard sharding_constraint
     """.split()
