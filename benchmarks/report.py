@@ -1132,14 +1132,18 @@ def vehicle(R: Results) -> str:
         "plain one's. *Same program*: XLA compiled the plain quadrotor's very program (the "
         "difference is noise)."
     )
+    aim = d.get("target_config", "full vehicle")
     verdicts = []
     for n, dt in columns:
-        full = by.get((n, dt, "full vehicle"))
-        if full is not None:
-            met = "met" if full["ratio"] <= target else "not met"
-            verdicts.append(f"{device(R.get(n))}, {dt}: {x(full['ratio'])}, {met}")
+        r, full = by.get((n, dt, aim)), by.get((n, dt, "full vehicle"))
+        if r is not None:
+            met = "met" if r["ratio"] <= target else "not met"
+            said = f"{device(R.get(n))}, {dt}: {x(r['ratio'])}, {met}"
+            if full is not None and aim != "full vehicle":
+                said += f" (the full vehicle: {x(full['ratio'])})"
+            verdicts.append(said)
     if verdicts:
-        text += f" Target: the full vehicle at most {x(target)} the plain quadrotor; "
+        text += f" Target: *{aim}* at most {x(target)} the plain quadrotor; "
         text += "; ".join(verdicts) + "."
     why: dict[str, list[str]] = {}  # the engine's reason -> the configurations it moved
     for n in names:

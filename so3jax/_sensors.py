@@ -12,7 +12,8 @@ Barfoot & Furgale), the others additive. The plant is not perturbed.
 
 The draws are counter-based: the twelve numbers of sample ``k`` are the Threefry-2x32
 hash of the counters ``(j, k)`` under the key's two words (`threefry2x32`), each
-word's top 24 bits a uniform ``u`` and ``sqrt(2) erfinv(2 u - 1)`` its normal. A run
+word's top 24 bits a uniform ``u`` and ``sqrt(2) erfinv(2 u - 1)`` its normal (by
+Giles' approximation, `_normals`). A run
 is reproducible from its key, whatever the integrator or the number of steps per hold,
 and the draws are elementwise integer arithmetic, which a batch runs in the engine's
 scalarized program (random primitives would not be).
@@ -70,15 +71,45 @@ def _key_words(key):
     return key[..., 0], key[..., 1]
 
 
+#: Giles' single-precision approximation of ``erfinv`` (M. Giles, "Approximating the
+#: erfinv function", GPU Computing Gems Jade Edition, 2011): with ``w = -log(1 - x^2)``,
+#: ``erfinv(x) = x p(w - 2.5)`` for ``w < 5`` and ``x q(sqrt(w) - 3)`` otherwise, ``p``
+#: and ``q`` of degree 8 (coefficients from the highest power down). Relative error
+#: below 2e-7 (`tests/test_sensor_noise.py` checks it against SciPy's ``erfinv``).
+_GILES_P = (2.81022636e-08, 3.43273939e-07, -3.5233877e-06, -4.39150654e-06, 0.00021858087,
+            -0.00125372503, -0.00417768164, 0.246640727, 1.50140941)  # fmt: skip
+_GILES_Q = (-0.000200214257, 0.000100950558, 0.00134934322, -0.00367342844, 0.00573950773,
+            -0.0076224613, 0.00943887047, 1.00167406, 2.83297682)  # fmt: skip
+
+
 def _normals(key, k, shape: tuple[int, ...], dtype):
-    """Standard normals of ``shape`` for sample ``k`` (`threefry2x32` of ``(j, k)``)."""
+    """Standard normals of ``shape`` for sample ``k`` (`threefry2x32` of ``(j, k)``).
+
+    Each word's top 24 bits ``m`` give ``x = 2 u - 1 = (a - 2^24) 2^-24`` with
+    ``a = 2 m + 1``, never ``±1``, and ``1 - x^2 = a (2^25 - a) 2^-48``, whose logarithm
+    is taken of the integer product (exact in float64: no cancellation near ``±1``). The
+    normal is ``sqrt(2) erfinv(x)`` by Giles' approximation (`_GILES_P`), plain
+    arithmetic and one ``log`` and ``sqrt`` in ``dtype``: in float64 it costs about half
+    of JAX's ``erfinv`` (``benchmarks/vehicle.py``, ``noise``), whose precision the
+    24-bit uniform would not use.
+    """
     n = int(np.prod(shape))
     j = np.arange(-(-n // 2), dtype=np.uint32)
     k0, k1 = _key_words(key)
     w0, w1 = threefry2x32(k0, k1, j, jnp.asarray(k).astype(jnp.uint32))
-    words = jnp.concatenate([w0, w1])[:n]
-    u = ((words >> np.uint32(8)).astype(dtype) + 0.5) * (2.0**-24)  # in (0, 1)
-    return (math.sqrt(2.0) * jax.scipy.special.erfinv(2.0 * u - 1.0)).reshape(shape)
+    return _gaussian(jnp.concatenate([w0, w1])[:n], dtype).reshape(shape)
+
+
+def _gaussian(words, dtype):
+    """The standard normals of uint32 ``words`` (`_normals`), in ``dtype``."""
+    a = 2 * (words >> np.uint32(8)).astype(jnp.int32) + 1
+    x = (a - 2**24).astype(dtype) * (2.0**-24)
+    w = 48 * math.log(2.0) - jnp.log(a.astype(dtype) * (2**25 - a).astype(dtype))
+    centre, tail = w - 2.5, jnp.sqrt(jnp.maximum(w, 5.0)) - 3.0
+    p, q = _GILES_P[0], _GILES_Q[0]
+    for cp, cq in zip(_GILES_P[1:], _GILES_Q[1:], strict=True):
+        p, q = cp + p * centre, cq + q * tail
+    return (math.sqrt(2.0) * jnp.where(w < 5.0, p, q) * x).astype(dtype)
 
 
 def _std(value, name: str) -> Array:

@@ -123,7 +123,8 @@ def test_unrolled_step_loops_change_the_program_not_the_results():
 
 def test_vehicle_configurations_hold_their_models():
     """`vehicle.py`'s "plain, models off" (every model given, off) traces the very program
-    of the plain quadrotor; "full vehicle" holds every model, and "rotors" only its own."""
+    of the plain quadrotor; "full vehicle" holds every model, "rotors" only its own, and the
+    target's configuration lagged rotors and drag."""
     import jax
     import jax.numpy as jnp
 
@@ -150,3 +151,6 @@ def test_vehicle_configurations_hold_their_models():
     assert isinstance(full.wind, s.Gust) and full.noise is not None
     assert not rotors.rotors.lagged and rotors.drag is None and rotors.wind is None
     assert not rotors.integral and getattr(rotors, "noise", None) is None
+    aim = scene(veh["TARGET_CONFIG"])  # the models the target is for: lagged rotors and drag
+    assert aim.rotors.lagged and aim.drag is not None and not callable(aim.wind)
+    assert not aim.integral and getattr(aim, "noise", None) is None

@@ -247,3 +247,21 @@ def test_noisy_batch_is_scalarized_and_float32_stays_float32():
     )  # fmt: skip
     tr = s.simulate(sc32, s.LieEuler(), DT, N_STEPS)
     assert tr.R.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(tr.Omega)))
+
+
+def test_normals_are_the_inverse_normal_cdf_of_their_words():
+    """Each 32-bit word's top 24 bits ``m`` give the normal ``sqrt(2) erfinv(2 u - 1)``,
+    ``u = (m + 1/2) / 2^24``: to 2e-7 relative (Giles' approximation) against SciPy,
+    over the whole range, the extreme words (about 5.4 sigma) included."""
+    from scipy.special import erfinv
+
+    from so3jax._sensors import _gaussian
+
+    m = np.concatenate([np.arange(0, 2**24, 4099), [0, 1, 2**23 - 1, 2**23, 2**24 - 1]])
+    words = jnp.asarray((m.astype(np.uint32) << 8) | 0x5A, jnp.uint32)  # low bits ignored
+    want = np.sqrt(2.0) * erfinv(2.0 * (m + 0.5) / 2**24 - 1.0)
+    got = np.asarray(_gaussian(words, jnp.float64))
+    assert np.max(np.abs(got - want) / np.abs(want)) < 2e-7
+    assert np.max(np.abs(want)) > 5.3
+    got32 = np.asarray(_gaussian(words, jnp.float32))
+    assert got32.dtype == np.float32 and np.max(np.abs(got32 - want) / np.abs(want)) < 2e-6

@@ -203,12 +203,17 @@ def test_quadrotor_runs_equal_simulate_with_the_documented_key():
 
 
 def test_default_layout_falls_back_silently():
-    """A step the scalarizer does not take (a gust's table lookup) runs as the array
-    program: silently in the sweep's default layout, nobody asked for the scalarized one;
-    said where it was asked for. (Different horizons: each call traces its own program.)"""
+    """A step the scalarizer does not take (a wind interpolated by ``jnp.interp``, whose
+    search is a loop) runs as the array program: silently in the sweep's default layout,
+    nobody asked for the scalarized one; said where it was asked for. (Different
+    horizons: each call traces its own program.)"""
     import warnings
 
-    gust = s.Gust(1.0, 0.5, 0.5, duration=0.2, key=jax.random.key(0))
+    times, speeds = jnp.linspace(0.0, 0.2, 9), jnp.linspace(1.0, 2.0, 9) ** 2
+
+    def gust(t):
+        return jnp.stack([jnp.interp(t, times, speeds), 0.0 * t, 0.0 * t])
+
     quad = scenes.quadrotor_recovery(control_period=0.01)
     quad = scenes.quadrotor(
         quad.vehicle.mass, quad.vehicle.body, quad.gains, quad.reference, R0=quad.y0.R[0],
