@@ -80,6 +80,27 @@ def test_attitude_gif(tmp_path):
     assert len(frames) == 3
 
 
+@pytest.mark.skipif(
+    not __import__("matplotlib.animation").animation.writers.is_available("ffmpeg"),
+    reason="writing an MP4 needs ffmpeg",
+)
+def test_attitude_mp4(tmp_path):
+    """Where ffmpeg is present, an MP4 with one frame per saved point (ffmpeg decodes it
+    and counts)."""
+    import re
+    import subprocess
+
+    from matplotlib import rcParams
+
+    tracking, _ = _trajectory()
+    path = plot.animate(tracking, tmp_path / "seed.mp4", fps=10)
+    decoded = subprocess.run(
+        [rcParams["animation.ffmpeg_path"], "-i", str(path), "-map", "0:v:0", "-f", "null", "-"],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    assert int(re.findall(r"frame=\s*(\d+)", decoded.stderr)[-1]) == N
+
+
 def test_quadrotor_gif(tmp_path):
     _, quad = _trajectory()
     rotors = s.Rotors(0.2, 0.02, 0.0, 18.0)
