@@ -84,3 +84,39 @@ def test_a_changed_policy_takes_effect_on_new_traces():
     assert off != first
     assert str(jax.make_jaxpr(batch)(R0s)) == first
     assert float(abs(batch(R0s) - plain).max()) < 1e-12
+
+
+def test_a_new_function_sees_a_changed_policy_without_clearing_caches():
+    """so3jax's entry points key their programs by the policy: a function traced anew under
+    another policy takes that policy's plan (a batch, and the gradient of its mean), with no
+    `jax.clear_caches`; a function already traced keeps its trace, as documented."""
+    import jax.numpy as jnp
+
+    from so3jax._tune import with_gains
+
+    scene = s.scenes.seed()
+    R0s = s.random_rotation(jax.random.key(1), (16,))
+
+    def fresh():
+        def batch(k):
+            sc = with_gains(scene, k, 2.0)
+            return jax.vmap(lambda R0: s.simulate(sc, s.LieEuler(), 0.01, 4, 2, R0=R0).R)(R0s)
+
+        return batch
+
+    def layouts(fn, *args):
+        return sorted({e["layout"] for e in s.explain(fn, *args).of("layout")})
+
+    def traced(fn, *args):
+        return str(jax.make_jaxpr(fn)(*args))
+
+    mean_grad = lambda f: jax.grad(lambda k: jnp.mean(f(k)[..., 0, 0]))  # noqa: E731
+    kept = fresh()
+    on = {"batch": traced(kept, 3.0), "grad": traced(mean_grad(fresh()), 3.0)}
+    assert layouts(fresh(), 3.0) == ["scalarized"]
+    with policy.using(passes=frozenset()):
+        assert layouts(fresh(), 3.0) == ["array"]
+        assert traced(fresh(), 3.0) != on["batch"]
+        assert traced(mean_grad(fresh()), 3.0) != on["grad"]
+        assert traced(kept, 3.0) == on["batch"]  # JAX's trace of a function it has seen
+    assert traced(fresh(), 3.0) == on["batch"]

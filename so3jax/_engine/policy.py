@@ -19,10 +19,11 @@ environment variables, read then and never again:
 - ``SO3JAX_FRAME_TANGENTS``: ``0`` turns the ``"frames"`` pass off.
 
 so3jax's jitted entry points key their compiled programs by the active policy
-(`so3jax._engine.plan.jit`), so a call under another policy traces again; JAX's own
-caches of the batched and differentiated programs inside do not know the policy, so call
-`jax.clear_caches` after changing it (``benchmarks/_common.py``'s ``engine_settings``
-does). Each pass
+(`so3jax._engine.plan.jit`), so a call under another policy traces again, under that
+policy. A function of the caller's that JAX has already traced (``jax.jit``,
+``jax.make_jaxpr``) keeps its trace, as it would keep any value read while tracing: a
+new function, or `jax.clear_caches`, sees the new policy (``benchmarks/_common.py``'s
+``engine_settings`` clears the caches). Each pass
 proves its equality with the reference path in ``tests/passes/``; what each one buys
 is measured by ``benchmarks/ablation.py``.
 """
