@@ -147,3 +147,35 @@ def test_table_read_under_every_transform():
         for a, b in zip(jax.tree.leaves(out[frozenset({"scalarize"})][t]),
                         jax.tree.leaves(out[frozenset()][t]), strict=True):  # fmt: skip
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14, err_msg=t)
+
+
+def test_a_long_table_runs_the_array_program():
+    """A table longer than the policy's ``scalarize_table_max`` (each entry would be a
+    component the loop carries) is not scalarized: the batch runs the array program and
+    the plan says why; at the limit it is scalarized."""
+    import jax
+    import jax.numpy as jnp
+
+    import so3jax as s
+    from so3jax._engine import policy, run
+
+    tables = jnp.cos(jnp.arange(C.B * 8 * 2.0)).reshape(C.B, 8, 2)
+
+    def step(P, c):
+        x, i = c
+        return x + 0.1 * P[jnp.clip(i, 0, 7)], i + 1
+
+    def mean(tables):
+        def one(table):
+            c0 = (jnp.zeros(2), jnp.array(0, jnp.int32))
+            out = run(step, lambda P, c: (c[0],), table, c0, 4, 2)
+            return jnp.sum(out[0][0])
+
+        return jnp.mean(jax.vmap(one)(tables))
+
+    for limit, layout in ((7, "array"), (8, "scalarized")):
+        with policy.using(C.SMALL.replace(scalarize_table_max=limit)):
+            plan = s.explain(mean, tables).of("layout")
+        assert [e["layout"] for e in plan] == [layout], plan
+        if layout == "array":
+            assert "scalarize_table_max is 7" in plan[0]["why"], plan

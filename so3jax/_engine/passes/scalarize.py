@@ -288,8 +288,9 @@ def _dynamic_slice(x: np.ndarray, starts: list, slice_sizes) -> np.ndarray:
     components along that axis are stacked into one array and indexed with JAX's
     `dynamic_index_in_dim` (or a per-run `take_along_axis` where the start is batched):
     one gather per output component, where a chain of selects would grow with the
-    table. The stacks depend only on ``x``, and a loop that reads a fixed table
-    computes them from its constants (XLA moves such work out of the loop).
+    table. Every entry of the table is a component of its own (a loop carries it), so
+    a table longer than the policy's ``scalarize_table_max`` raises `ScalarizeError`:
+    its batch runs the array program.
     """
     out = x
     for axis, (start, size) in enumerate(zip(starts, slice_sizes, strict=True)):
@@ -299,6 +300,11 @@ def _dynamic_slice(x: np.ndarray, starts: list, slice_sizes) -> np.ndarray:
             lo = int(np.clip(int(s), 0, n - size))
             out = np.take(out, range(lo, lo + size), axis=axis)
             continue
+        if n > current().scalarize_table_max:
+            raise ScalarizeError(
+                f"scalarize: dynamic_slice of a table of {n} entries (the policy's "
+                f"scalarize_table_max is {current().scalarize_table_max})"
+            )
         s = jnp.clip(jnp.asarray(s), 0, n - size)
         moved = np.moveaxis(out, axis, 0)
         res = _obj((size,) + moved.shape[1:])
