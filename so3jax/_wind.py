@@ -95,9 +95,9 @@ class Gust(eqx.Module):
     ``jax.vmap(lambda k: Gust(..., key=k))(keys)`` builds a batch of independent gusts,
     and it goes to `scenes.quadrotor` as ``wind=``. For Dryden's longitudinal gust of
     MIL-F-8785C, with scale length ``L`` at airspeed ``V``, take ``T = L / V``. A batch
-    reads each run's path at a computed index: up to the engine policy's
-    ``scalarize_table_max`` grid points (128) it runs in the scalarized program, a
-    longer path in the array program (``benchmarks/vehicle.py``).
+    reads each run's path at a computed index, one gather per read, in the engine's
+    scalarized program (the gradient of a batch: up to the policy's
+    ``scalarize_table_max`` grid points, 128); ``benchmarks/vehicle.py`` measures it.
 
     Between grid points the interpolated variance is ``sigma^2 (1 - 2 u (1 - u) (1 - a))``
     (``u`` the fraction of the way, ``a = exp(-h / T)``): at most ``h / (2 T)`` less

@@ -149,10 +149,11 @@ class Policy:
     column_cut_cone: int = 4
     #: Column cuts in the scalarized Jacobian program from batches of this many runs.
     column_cuts_from: int = 32
-    #: The longest table (entries along a computed index) the scalarized program reads by
-    #: ``lax.dynamic_slice`` (a `so3jax.Gust`'s path): each entry is a scalar component
-    #: the loop carries, so its run and compile time grow with the table; a longer one
-    #: runs the array program (``benchmarks/vehicle.py``, ``drag, gust``).
+    #: The longest table (entries along a computed index) that a scalarized derivative
+    #: program reads by ``lax.dynamic_slice`` (a `so3jax.Gust`'s path): there each entry
+    #: is a scalar component the loop carries, so its run and compile time grow with the
+    #: table; a longer one runs the array program. (The forward program keeps a run's
+    #: tables whole: `scalarize.is_table`.)
     scalarize_table_max: int = 128
     #: Through at most this many differentiated scalars a run computes its Jacobian with
     #: its value in one pass (`so3jax._engine.derivatives.OnePassJacobian`).

@@ -49,12 +49,24 @@ class Programs(Loop):
     """`Loop`'s reference programs with the scalarized layout and the derivative programs."""
 
     def fwd_scalar(self, P, c0, cut=None, batched=None, one=None):
-        ex = (P, c0)
-        body, _ = sc.flat_program(lambda pc: (pc[0], self.step(*pc)), ex, cut)
-        obs, obs_struct = sc.flat_program(lambda pc: self.observe(*pc), ex, cut)
+        # Tables in ``P`` (`sc.is_table`: a `Gust`'s path) stay whole, closed over: the
+        # scalarized step reads them by ``dynamic_slice`` instead of carrying each entry.
+        leaves, tree = jax.tree.flatten(P)
+        table = [sc.is_table(x) for x in leaves]
+        small = [x for x, t in zip(leaves, table, strict=True) if not t]
+        tables = [x for x, t in zip(leaves, table, strict=True) if t]
+
+        def whole(small):
+            s, t = iter(small), iter(tables)
+            return jax.tree.unflatten(tree, [next(t) if k else next(s) for k in table])
+
+        ex = (small, c0)
+        body, _ = sc.flat_program(lambda pc: (pc[0], self.step(whole(pc[0]), pc[1])), ex, cut)
+        obs, obs_struct = sc.flat_program(lambda pc: self.observe(whole(pc[0]), pc[1]), ex, cut)
         flat = sc.split(ex)
         if batched is not None:
-            flat = sc.settle_batched(body, flat, _component_flags(ex, batched), one)
+            flags = [b for b, t in zip(jax.tree.leaves(batched[0]), table, strict=True) if not t]
+            flat = sc.settle_batched(body, flat, _component_flags(ex, (flags, batched[1])), one)
         flat, ys = _hoisted(functools.partial(self._save_loop, body, obs), flat)
         _, cN = sc.join(flat, jax.eval_shape(lambda: ex))
         return sc.join(ys, obs_struct, (self.n_save,)), cN

@@ -66,8 +66,9 @@ def test_dynamic_slice_reads_a_table():
 
 def test_gust_batch_is_scalarized():
     """A batch of quadrotors in `so3jax.Gust`s (the wind read from each run's path at a
-    computed index) is scalarized, and equals the reference; the table read's derivatives
-    are `test_table_read_under_every_transform`'s."""
+    computed index) is scalarized, and equals the reference. The path, longer than the
+    policy's ``scalarize_table_max``, stays whole (`scalarize._Table`) in the forward
+    program; the table read's derivatives are `test_table_read_under_every_transform`'s."""
     import equinox as eqx
     import jax
     import jax.numpy as jnp
@@ -83,7 +84,7 @@ def test_gust_batch_is_scalarized():
 
     def batch(mu):
         def one(key, R0):
-            gust = s.Gust(0.0, 1.5, 0.01, duration=n * dt, key=key)
+            gust = s.Gust(0.0, 1.5, 0.001, duration=n * dt, key=key)  # 301 points
             gust = eqx.tree_at(lambda g: g.mean, gust, mu)
             sc = s.scenes.quadrotor(
                 base.vehicle.mass, base.vehicle.body, base.gains, base.reference,
@@ -92,6 +93,9 @@ def test_gust_batch_is_scalarized():
             return s.simulate(sc, s.LieEuler(), dt, n, n // 2, R0=R0).extras["v"]
 
         return jax.vmap(one)(keys, R0s)
+
+    def gust_points(mu):
+        return s.Gust(0.0, 1.5, 0.001, duration=n * dt, key=0).path.shape[0]
 
     mu = jnp.array([4.0, -1.0, 0.5])
     out = {}
@@ -102,6 +106,7 @@ def test_gust_batch_is_scalarized():
             out[passes] = np.asarray(jax.jit(batch)(mu))
         assert ({e["layout"] for e in plan} == {"scalarized"}) == bool(passes), plan
     ref, got = out[frozenset()], out[frozenset({"scalarize"})]
+    assert gust_points(mu) > C.SMALL.scalarize_table_max
     assert np.ptp(ref[:, -1, 0]) > 0.01  # the runs' gusts differ
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-14)
 
@@ -179,3 +184,28 @@ def test_a_long_table_runs_the_array_program():
         assert [e["layout"] for e in plan] == [layout], plan
         if layout == "array":
             assert "scalarize_table_max is 7" in plan[0]["why"], plan
+
+
+def test_a_closed_over_table_stays_whole():
+    """A large constant closed over by the scalarized function (`scalarize._Table`) is read
+    by ``dynamic_slice`` whole and, used otherwise, by its components: both equal JAX's."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from so3jax._engine.passes import scalarize as S
+
+    big = jnp.sin(jnp.arange(400.0)).reshape(200, 2)
+    assert S.is_table(big)
+
+    def f(i, x):
+        row = jax.lax.dynamic_slice(big, (i, jnp.int32(0)), (2, 2))
+        return row * x + big[7, 1], jnp.sum(big[:3] * x)
+
+    run = S.scalarize(f, jnp.int32(0), jnp.float64(1.0))
+    go = jax.jit(
+        lambda i, x: [S.from_components(o) for o in run(S.to_components(i), S.to_components(x))]
+    )
+    for i in (-4, 0, 117, 199, 500):
+        for got, want in zip(go(jnp.int32(i), 1.5), f(jnp.int32(i), 1.5), strict=True):
+            np.testing.assert_array_equal(got, want)

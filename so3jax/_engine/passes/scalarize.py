@@ -25,7 +25,9 @@ arithmetic and transcendental functions, comparisons and `select_n`, shape
 operations, `dynamic_slice` (a table read at a computed index), `dot_general`,
 sums/max/min reductions, nested `jit`, custom JVP/VJP calls and `cond`); anything
 else (loops, scatters and gathers, sorting) raises `NotImplementedError`, and callers
-fall back to the plain function.
+fall back to the plain function. A large constant the function closes over (a table,
+`is_table`) stays one array: ``dynamic_slice`` reads it whole, any other use by its
+components.
 """
 
 from __future__ import annotations
@@ -107,6 +109,44 @@ def _const(value, aval=None) -> np.ndarray:
     for idx in np.ndindex(*np.shape(arr)):
         out[idx] = conv(arr[idx])
     return out
+
+
+#: Constants with more elements than this stay whole (`_Table`) until read otherwise than
+#: by ``lax.dynamic_slice``.
+TABLE_MIN = 64
+
+
+class _Table:
+    """A large constant (a table: a `so3jax.Gust`'s path) kept whole.
+
+    ``lax.dynamic_slice`` reads it as JAX does (`_read_table`); any other use takes its
+    components (`_const`), once. A table read at a computed index then costs one gather
+    per read, whatever its length, and adds no component to the program.
+    """
+
+    def __init__(self, value):
+        self.value = value
+        self._components = None
+
+    def components(self) -> np.ndarray:
+        if self._components is None:
+            self._components = _const(self.value)
+        return self._components
+
+
+def is_table(x) -> bool:
+    """Whether a constant is kept whole (`_Table`): more than `TABLE_MIN` elements."""
+    return jnp.ndim(x) >= 1 and jnp.size(x) > TABLE_MIN
+
+
+def _materialized(x):
+    return x.components() if isinstance(x, _Table) else x
+
+
+def _read_table(table: _Table, starts: list, slice_sizes) -> np.ndarray:
+    """``lax.dynamic_slice`` of a whole table at component starts, as components."""
+    starts = [jnp.asarray(_index_value(i)) for i in starts]
+    return to_components(jax.lax.dynamic_slice(jnp.asarray(table.value), starts, slice_sizes))
 
 
 def _cast(dtype):
@@ -288,9 +328,10 @@ def _dynamic_slice(x: np.ndarray, starts: list, slice_sizes) -> np.ndarray:
     components along that axis are stacked into one array and indexed with JAX's
     `dynamic_index_in_dim` (or a per-run `take_along_axis` where the start is batched):
     one gather per output component, where a chain of selects would grow with the
-    table. Every entry of the table is a component of its own (a loop carries it), so
-    a table longer than the policy's ``scalarize_table_max`` raises `ScalarizeError`:
-    its batch runs the array program.
+    table. Every entry of such a table is a component of its own (a loop carries it),
+    so one longer than the policy's ``scalarize_table_max`` raises `ScalarizeError`: its
+    batch runs the array program. (A table closed over as a constant stays whole and is
+    read by `_read_table` instead.)
     """
     out = x
     for axis, (start, size) in enumerate(zip(starts, slice_sizes, strict=True)):
@@ -343,6 +384,14 @@ def _eval(jaxpr, consts, args):
         env[v] = a
     for eqn in jaxpr.eqns:
         ins = [read(v) for v in eqn.invars]
+        if any(isinstance(x, _Table) for x in ins):
+            if eqn.primitive.name == "dynamic_slice" and not any(
+                isinstance(x, _Table) for x in ins[1:]
+            ):
+                env[eqn.outvars[0]] = _read_table(ins[0], ins[1:], eqn.params["slice_sizes"])
+                continue
+            if eqn.primitive.name not in _CALLS:
+                ins = [_materialized(x) for x in ins]
         outs = _apply(eqn, ins)
         if not eqn.primitive.multiple_results:
             outs = [outs]
@@ -353,6 +402,13 @@ def _eval(jaxpr, consts, args):
                 o = arr
             env[v] = o
     return [read(v) for v in jaxpr.outvars]
+
+
+#: Primitives that evaluate a jaxpr with their operands: a table passes into it whole.
+_CALLS = frozenset(
+    "pjit jit closed_call core_call remat remat2 checkpoint custom_jvp_call custom_vmap_call"
+    " custom_vjp_call".split()
+)
 
 
 def _closed(cj, args):
@@ -456,7 +512,7 @@ def _apply(eqn, ins):
         index, ops = ins[0], ins[1:]
         if _is_cut(p["branches"]):  # an array program's `fusion_cut`: cut anew here
             return list(ops)
-        results = [_closed(br, ops) for br in p["branches"]]
+        results = [[_materialized(o) for o in _closed(br, ops)] for br in p["branches"]]
         if len(results) == 1:
             return results[0]
         return _select_branches(index, results)
@@ -504,13 +560,13 @@ def scalarize(fn: Callable, *example_args) -> Callable:
     """
     closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*example_args)
     _check(closed.jaxpr)
-    consts = [_const(c) for c in closed.consts]
+    consts = [_Table(c) if is_table(c) else _const(c) for c in closed.consts]
     in_tree = jax.tree.structure(example_args)
     out_tree = jax.tree.structure(out_shape)
 
     def run(*component_args):
         leaves = in_tree.flatten_up_to(component_args)
-        outs = _eval(closed.jaxpr, consts, leaves)
+        outs = [_materialized(o) for o in _eval(closed.jaxpr, consts, leaves)]
         return jax.tree.unflatten(out_tree, outs)
 
     return run
