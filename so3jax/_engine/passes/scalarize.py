@@ -385,9 +385,7 @@ def _eval(jaxpr, consts, args):
     for eqn in jaxpr.eqns:
         ins = [read(v) for v in eqn.invars]
         if any(isinstance(x, _Table) for x in ins):
-            if eqn.primitive.name == "dynamic_slice" and not any(
-                isinstance(x, _Table) for x in ins[1:]
-            ):
+            if eqn.primitive.name == "dynamic_slice" and isinstance(ins[0], _Table):
                 env[eqn.outvars[0]] = _read_table(ins[0], ins[1:], eqn.params["slice_sizes"])
                 continue
             if eqn.primitive.name not in _CALLS:
@@ -402,13 +400,6 @@ def _eval(jaxpr, consts, args):
                 o = arr
             env[v] = o
     return [read(v) for v in jaxpr.outvars]
-
-
-#: Primitives that evaluate a jaxpr with their operands: a table passes into it whole.
-_CALLS = frozenset(
-    "pjit jit closed_call core_call remat remat2 checkpoint custom_jvp_call custom_vmap_call"
-    " custom_vjp_call".split()
-)
 
 
 def _closed(cj, args):
@@ -671,6 +662,9 @@ def batched_components(run_flat, flat: list, batched: list, dtypes=None) -> list
 CALL_PRIMITIVES = frozenset(
     "pjit jit closed_call core_call custom_jvp_call custom_vjp_call remat checkpoint".split()
 )
+
+#: Primitives whose jaxpr `_eval` runs with their operands: a table passes into it whole.
+_CALLS = CALL_PRIMITIVES | {"remat2", "custom_vmap_call"}
 
 
 def batched_outputs(jaxpr, flags: list, const_flags=()) -> list:
