@@ -51,6 +51,7 @@ import numpy as np
 from ._actuators import Rotors
 from ._control import _check_gain, _geometric_torque
 from ._dynamics import RigidBody
+from ._engine.passes.hoist import called_whole
 from ._repr import module_repr
 from ._scene import Scene, check_rotation
 from ._scenes import _as_body, _cast_floats, _check_reference, _steps_per_hold
@@ -872,7 +873,7 @@ class Quadrotor(Scene):
             n = jnp.maximum(jnp.round(T / dt), 1.0).astype(T.dtype)
         scene = eqx.tree_at(lambda s: s.steps_per_sample, self, n, is_leaf=lambda a: a is None)
         y = self.y0
-        c = _sample_control(self, jnp.asarray(t0, y.x.dtype), y)
+        c = called_whole(_sample_control, self, jnp.asarray(t0, y.x.dtype), y)
         at_sample = (y.x[..., _COUNTER] == 0)[..., None]
         held = jnp.where(at_sample, jnp.concatenate([c.f[..., None], c.M], -1), y.x[..., _HELD])
         x = jnp.concatenate([y.x[..., :_N], held, y.x[..., _COUNTER:]], -1)
@@ -892,8 +893,7 @@ class Quadrotor(Scene):
         sample = count > self.steps_per_sample - 0.5
         if self.integral:
             return self._jump_integral(t, y, count, sample)
-        # Rematerialised in reverse mode: fewer saved residuals per step (faster on CPU).
-        c = eqx.filter_checkpoint(_control_of, prevent_cse=False)(self, t, y)
+        c = _control_of(self, t, y)
         new = jnp.concatenate([c.f[..., None], c.M], -1)
         held = jnp.where(sample[..., None], new, y.x[..., _HELD])
         count = jnp.where(sample, jnp.zeros_like(count), count)
@@ -912,10 +912,7 @@ class Quadrotor(Scene):
         x_d, x_d1 = _time_derivatives(lambda s: self.reference(s)[0], jnp.asarray(t, y.x.dtype), 1)
         rate_i = (ym.x[..., 6:9] - x_d1) + g.c1 * (ym.x[..., 3:6] - x_d)
         e_i = jnp.clip(e[..., :3] + T * rate_i, -g.sigma_i, g.sigma_i)
-        # Rematerialised in reverse mode, as in `jump`.
-        c = eqx.filter_checkpoint(_control_with_position_integral, prevent_cse=False)(
-            self, t, ym, e_i
-        )
+        c = _control_with_position_integral(self, t, ym, e_i)
         e_I = jnp.clip(e[..., 3:] + T * (c.e_Omega + g.c2 * c.e_R), -g.sigma_I, g.sigma_I)
         new = jnp.concatenate([c.f[..., None], c.M - g.k_I * e_I], -1)
         held = jnp.where(sample[..., None], new, y.x[..., _HELD])

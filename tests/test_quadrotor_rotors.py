@@ -269,7 +269,7 @@ class NominalQuadrotor(Quadrotor):
             return y
         count = y.x[..., _COUNTER] + 1.0
         sample = count > self.steps_per_sample - 0.5
-        c = eqx.filter_checkpoint(_control_of, prevent_cse=False)(self, t, y)
+        c = _control_of(self, t, y)
         new = jnp.concatenate([c.f[..., None], c.M], -1)
         held = jnp.where(sample[..., None], new, y.x[..., _HELD])
         count = jnp.where(sample, jnp.zeros_like(count), count)

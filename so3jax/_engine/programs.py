@@ -315,36 +315,49 @@ class Programs(Loop):
         pass is left out. ``ct_cN``: one per float leaf of the final carry.
 
         The carries at the segments' starts, ``ck``, come from the forward pass
-        (`fwd_segments`) or are computed first (`checkpoints`); then,
-        last segment first, JAX's ``vjp`` of the segment's ``K`` steps and their
-        observations, as a function of the float leaves flagged in ``mP`` and ``mc``
-        (`_tangent_masks`) only: the others have a zero tangent, so no cotangent reaching
-        them contributes, and their entries of ``gP``, ``gc0`` are zeros. Per-step
-        observation cotangents enter as the loop's inputs (`_step_cts`). The segment's
-        residuals are its own (memory ``~ K + n / K`` steps).
+        (`fwd_segments`) or are computed first (`checkpoints`); then, last segment
+        first, one loop runs the segment's ``K`` steps, each (with its observations)
+        through JAX's ``vjp`` as a function of the float leaves flagged in ``mP`` and
+        ``mc`` (`_tangent_masks`) only, and a backward loop applies their pullbacks. The
+        other leaves have a zero tangent, so no cotangent reaching them contributes, and
+        their entries of ``gP``, ``gc0`` are zeros. Per-step observation cotangents enter
+        as the backward loop's inputs (`_step_cts`). A step's residuals pass between the
+        loops packed, one vector per dtype (`_pack`): stacked one by one, each was a
+        kernel of its own in each loop (``benchmarks/difftune.py``). Memory ``~ K + n / K``
+        steps.
         """
         K = self.K
         pf, cf = _floats(P), _floats(c0)
 
         def segment(carry, x):
-            lam, acc = carry
             s, ck, cts = x
-            ckf = _floats(ck)
+            layout = []  # the residuals' tree and packing: found where the steps are traced
 
-            def steps(Pm, cm):
-                Pp = _with_floats(P, _fill(mP, Pm, pf))
+            def forward(c, i):
+                def f(Pm, cm):
+                    Pp = _with_floats(P, _fill(mP, Pm, pf))
+                    cc = _with_floats(c, _fill(mc, cm, _floats(c)))
+                    c1 = self._masked_step(Pp, cc, s * K + i)
+                    obs = _pick(keep, jax.tree.leaves(self.observe(Pp, c1)))
+                    return (_pick(mc, _floats(c1)), obs), c1
 
-                def one(c, i):
-                    c1 = self._masked_step(Pp, c, s * K + i)
-                    return c1, _pick(keep, jax.tree.leaves(self.observe(Pp, c1)))
+                _, pull, c1 = jax.vjp(f, _pick(mP, pf), _pick(mc, _floats(c)), has_aux=True)
+                res, tree = jax.tree.flatten(pull)
+                packed, spec = _pack(res)
+                layout[:] = [tree, spec]
+                return c1, packed
 
-                c = _with_floats(ck, _fill(mc, cm, ckf))
-                cK, obs = jax.lax.scan(one, c, jnp.arange(K))
-                return _pick(mc, _floats(cK)), obs
+            _, packed = jax.lax.scan(forward, ck, jnp.arange(K))
+            tree, spec = layout
 
-            _, pull = jax.vjp(steps, _pick(mP, pf), _pick(mc, ckf))
-            gP, lam = pull((lam, cts))
-            return (lam, [a + g for a, g in zip(acc, gP, strict=True)]), None
+            def backward(carry, x):
+                lam, acc = carry
+                packed, ct = x
+                pull = jax.tree.unflatten(tree, _unpack(packed, spec))
+                gP, lam = pull((lam, ct))
+                return (lam, [a + g for a, g in zip(acc, gP, strict=True)]), None
+
+            return jax.lax.scan(backward, carry, (packed, cts), reverse=True)[0], None
 
         acc0 = [jnp.zeros_like(p) for p in _pick(mP, pf)]
         carry0 = (_pick(mc, ct_cN), acc0)
@@ -360,6 +373,32 @@ class Programs(Loop):
             (lam, acc), _ = jax.lax.scan(segment, carry0, xs, reverse=True)
         gP = _fill(mP, acc, [jnp.zeros_like(p) for p in pf])
         return gP, _fill(mc, lam, [jnp.zeros_like(c) for c in cf])
+
+
+def _pack(leaves: list) -> tuple[list, list]:
+    """``(packed, spec)``: ``leaves`` raveled into one vector per dtype, and how to undo it
+    (`_unpack`). A step's residuals leave a loop as a few stacked arrays, not one each:
+    XLA compiles a kernel per stacked array and per read of it."""
+    groups: dict = {}
+    spec = []
+    for x in leaves:
+        x = jnp.asarray(x)
+        group = groups.setdefault(x.dtype, [])
+        spec.append((list(groups).index(x.dtype), len(group), x.shape, x.dtype))
+        group.append(jnp.ravel(x))
+    return [jnp.concatenate(g) if len(g) > 1 else g[0] for g in groups.values()], spec
+
+
+def _unpack(packed: list, spec: list) -> list:
+    """The leaves `_pack` packed into ``packed`` with ``spec``."""
+    starts: dict = {}
+    out = []
+    for g, _, shape, _ in spec:
+        at = starts.get(g, 0)
+        size = math.prod(shape)
+        out.append(packed[g][at : at + size].reshape(shape))
+        starts[g] = at + size
+    return out
 
 
 def _scalar_or_array(loop: Programs) -> Callable:
