@@ -9,7 +9,7 @@ How to read it, smallest first:
 - `so3jax._engine.loop`: the reference programs, a plain ``lax.scan`` and its
   checkpointed segments. With ``program="autodiff"`` that is all a run is.
 - `so3jax._engine.derivatives`: the derivative strategies as objects (`Autodiff`, the
-  reference; `OnePassJacobian`; `DiscreteAdjoint`; `CheckpointedAdjoint`) and `choose`,
+  reference; `OnePassJacobian`; `CheckpointedAdjoint`, the discrete adjoint) and `choose`,
   which picks one.
 - `so3jax._engine.layout`: one run executes the array program; a batch under ``vmap``
   the scalarized one from the policy's threshold on (a ``custom_vmap`` rule, so nested

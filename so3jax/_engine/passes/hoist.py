@@ -193,7 +193,8 @@ def called_whole(fn: Callable, *args):
     otherwise a few dozen kernels, and its transpose a hundred more, each compiled on its
     own. Its reductions are written out (`_unrolled`): a ``vmap`` may batch the call
     after this choice. Where the policy's ``"hoist"`` pass is off, off a single CPU
-    device, under a second derivative's trace, or with a primitive outside `_HOISTABLE`,
+    device, under a second derivative's trace, on a JAX release outside the engine's
+    gate (`so3jax._engine._jax.supported`), or with a primitive outside `_HOISTABLE`,
     it is ``fn(*args)``; so it is outside a trace (``fn``, if jitted, keeps its
     own cache there). ``args`` may hold non-array leaves (an equinox module's
     functions): they are static. Equal to ``fn(*args)`` to round-off:
@@ -202,9 +203,9 @@ def called_whole(fn: Callable, *args):
     import equinox as eqx
 
     _, hoist, _ = _TRACING.get()
-    if _jax.set_xla_metadata is None or not hoist or not current().on("hoist"):
+    if _jax.set_xla_metadata is None or not _jax.supported() or not hoist:
         return fn(*args)
-    if not one_cpu_device():
+    if not current().on("hoist") or not one_cpu_device():
         return fn(*args)
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, tree = jax.tree.flatten(dynamic)
