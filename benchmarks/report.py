@@ -761,12 +761,26 @@ def difftune(R: Results) -> str:
     rows = [[k, dur(v["run_s"]), x(it[k]), dur(v["compile_s"])] for k, v in t.items()]
     n = d["n_iter"]
     for mode in d["tune_wall_s"]:
+        walls = d.get("tune_walls_s", {}).get(mode, [])
+        spread = f" ({dur(min(walls))}–{dur(max(walls))})" if len(walls) > 1 else ""
         rows.append(
             [
                 f"{n} iterations, {mode} mode: with compilation / loop alone / "
                 f"{n} × the fastest iteration",
-                f"{dur(d['tune_wall_s'][mode])} / {dur(d['tune_loop_without_compile_s'][mode])}"
+                f"{dur(d['tune_wall_s'][mode])}{spread} / "
+                f"{dur(d['tune_loop_without_compile_s'][mode])}"
                 f" / {dur(d['n_iter_times_fastest_iteration_s'][mode])}",
+                "",
+                "",
+            ]
+        )
+    fresh = d.get("tune_reverse_fresh_process_walls_s")
+    if fresh:
+        spread = f" ({dur(min(fresh))}–{dur(max(fresh))})" if len(fresh) > 1 else ""
+        rows.append(
+            [
+                f"{n} iterations, reverse mode, in a fresh process (tracing included)",
+                f"{dur(min(fresh))}{spread}",
                 "",
                 "",
             ]

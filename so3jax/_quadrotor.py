@@ -624,9 +624,10 @@ def _control_with_position_integral(scene, t, y, e_i):
     )
 
 
-#: The controller at one ``(t, y)``, compiled. `quadrotor` and `Quadrotor.for_step`
-#: sample it outside any ``jit``; run op by op, its first call compiled some 75 small
-#: kernels (2.3 s against 0.7 s for the whole controller at once).
+#: The controller at one ``(t, y)``, compiled as one program (op by op, a first call
+#: outside any ``jit`` would compile each operation on its own). `Quadrotor.for_step`
+#: calls it through `called_whole`: under a trace it, and its derivative, compile as one
+#: function on a CPU.
 _sample_control = eqx.filter_jit(_control_of)
 
 

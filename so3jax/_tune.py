@@ -898,8 +898,11 @@ def _tune_general(
         )
     params = jax.tree.map(lambda p: jnp.asarray(p, dtype), params)
     # Checks that need concrete values (a quadrotor's dt against its control period),
-    # here: inside the jitted tuning step the scene's arrays are traced.
-    scene.for_step(_check_dt(dt, dtype), jnp.zeros((), dtype))
+    # here: inside the jitted tuning step the scene's arrays are traced. Under
+    # `eval_shape` the scene, closed over, stays concrete for the checks, and nothing
+    # is compiled or run.
+    dt_checked = _check_dt(dt, dtype)
+    jax.eval_shape(lambda: scene.for_step(dt_checked, jnp.zeros((), dtype)))
     if bounds is None:
         project = None
     else:
