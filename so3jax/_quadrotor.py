@@ -51,7 +51,6 @@ import numpy as np
 from ._actuators import Rotors
 from ._control import _check_gain, _geometric_torque
 from ._dynamics import RigidBody
-from ._engine.passes.hoist import called_whole
 from ._repr import module_repr
 from ._scene import Scene, check_rotation
 from ._scenes import _as_body, _cast_floats, _check_reference, _steps_per_hold
@@ -624,10 +623,9 @@ def _control_with_position_integral(scene, t, y, e_i):
     )
 
 
-#: The controller at one ``(t, y)``, compiled as one program (op by op, a first call
-#: outside any ``jit`` would compile each operation on its own). `Quadrotor.for_step`
-#: calls it through `called_whole`: under a trace it, and its derivative, compile as one
-#: function on a CPU.
+#: The controller at one ``(t, y)``, compiled as one program: `quadrotor` and
+#: `Quadrotor.for_step` sample it outside any ``jit``, where op by op a first call would
+#: compile each operation on its own.
 _sample_control = eqx.filter_jit(_control_of)
 
 
@@ -874,7 +872,7 @@ class Quadrotor(Scene):
             n = jnp.maximum(jnp.round(T / dt), 1.0).astype(T.dtype)
         scene = eqx.tree_at(lambda s: s.steps_per_sample, self, n, is_leaf=lambda a: a is None)
         y = self.y0
-        c = called_whole(_sample_control, self, jnp.asarray(t0, y.x.dtype), y)
+        c = _sample_control(self, jnp.asarray(t0, y.x.dtype), y)
         at_sample = (y.x[..., _COUNTER] == 0)[..., None]
         held = jnp.where(at_sample, jnp.concatenate([c.f[..., None], c.M], -1), y.x[..., _HELD])
         x = jnp.concatenate([y.x[..., :_N], held, y.x[..., _COUNTER:]], -1)

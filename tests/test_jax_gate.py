@@ -47,19 +47,3 @@ def test_an_untested_release_takes_the_reference_path(monkeypatch):
     np.testing.assert_allclose(ref_value, value, rtol=1e-12)
     np.testing.assert_allclose(ref_grad, grad, rtol=1e-10)
     _jax.warn_reference_path.cache_clear()
-
-
-def test_an_untested_release_compiles_no_call_whole(monkeypatch):
-    """A scene's work outside its loops (`called_whole`: a sampled quadrotor's first
-    control sample) is staged as the plain function on an untested release."""
-    from so3jax._engine.passes.hoist import called_whole
-
-    def f(x):
-        return called_whole(lambda x: jnp.sum(jnp.sin(x) * x), x)
-
-    x = jnp.array([0.3, -1.2, 0.7])
-    if jax.default_backend() == "cpu" and len(jax.devices()) == 1:
-        assert "xla_cpu_small_call" in jax.jit(jax.grad(f)).lower(x).as_text()
-    monkeypatch.setattr(_jax, "TESTED", frozenset())
-    assert "xla_cpu_small_call" not in jax.jit(jax.grad(f)).lower(x).as_text()
-    np.testing.assert_allclose(jax.grad(f)(x), jnp.sin(x) + x * jnp.cos(x), rtol=1e-14)

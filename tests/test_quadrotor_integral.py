@@ -23,7 +23,6 @@ from scipy.spatial.transform import Rotation
 import so3jax as s
 from so3jax import scenes
 from so3jax._control import _geometric_torque
-from so3jax._engine.passes.hoist import called_whole
 from so3jax._quadrotor import (
     _COUNTER,
     _HELD,
@@ -247,7 +246,7 @@ class FrozenPlant(QuadrotorPlant):
         n = jnp.maximum(jnp.round(self.control_period / dt), 1.0).astype(self.control_period.dtype)
         scene = eqx.tree_at(lambda s: s.steps_per_sample, self, n, is_leaf=lambda a: a is None)
         y = self.y0
-        c = called_whole(_sample_control, self, jnp.asarray(t0, y.x.dtype), y)
+        c = _sample_control(self, jnp.asarray(t0, y.x.dtype), y)
         at_sample = (y.x[..., _COUNTER] == 0)[..., None]
         held = jnp.where(at_sample, jnp.concatenate([c.f[..., None], c.M], -1), y.x[..., _HELD])
         x = jnp.concatenate([y.x[..., :_N], held, y.x[..., _COUNTER:]], -1)

@@ -167,12 +167,6 @@ def _hoisted(loop: Callable, *args, xs_from: int | None = None):
         outs = jex_core.jaxpr_as_fun(closed)(*leaves)
         return jax.tree.unflatten(jax.tree.structure(shape), outs)
     _plan.note("hoisting", hoisted=True, runs=runs, unrolled=hoisted is not closed)
-    return _small_call(hoisted, leaves, shape)
-
-
-def _small_call(hoisted, leaves: list, shape):
-    """``hoisted`` (a ``ClosedJaxpr``) at ``leaves``, staged as a call XLA's older CPU emitter
-    compiles whole; its results as ``shape``'s tree (`_hoisted`)."""
     consts, leaves = jax.lax.optimization_barrier((list(hoisted.consts), leaves))
 
     @jax.jit
@@ -183,40 +177,3 @@ def _small_call(hoisted, leaves: list, shape):
     with _jax.set_xla_metadata(xla_cpu_small_call="true", inlineable="false"):
         outs, _ = call(consts, leaves)
     return jax.tree.unflatten(jax.tree.structure(shape), outs)
-
-
-def called_whole(fn: Callable, *args):
-    """``fn(*args)``, a computation without loops, compiled as one function on a CPU.
-
-    The loops of a run are hoisted where they are traced (`_hoisted`); a scene's work
-    outside them (a sampled controller's first sample, `so3jax.Quadrotor.for_step`) is
-    otherwise a few dozen kernels, and its transpose a hundred more, each compiled on its
-    own. Its reductions are written out (`_unrolled`): a ``vmap`` may batch the call
-    after this choice. Where the policy's ``"hoist"`` pass is off, off a single CPU
-    device, under a second derivative's trace, on a JAX release outside the engine's
-    gate (`so3jax._engine._jax.supported`), or with a primitive outside `_HOISTABLE`,
-    it is ``fn(*args)``; so it is outside a trace (``fn``, if jitted, keeps its
-    own cache there). ``args`` may hold non-array leaves (an equinox module's
-    functions): they are static. Equal to ``fn(*args)`` to round-off:
-    ``tests/passes/test_hoist.py``.
-    """
-    import equinox as eqx
-
-    _, hoist, _ = _TRACING.get()
-    if _jax.set_xla_metadata is None or not _jax.supported() or not hoist:
-        return fn(*args)
-    if not current().on("hoist") or not one_cpu_device():
-        return fn(*args)
-    dynamic, static = eqx.partition(args, eqx.is_array)
-    leaves, tree = jax.tree.flatten(dynamic)
-    if not any(isinstance(x, jax.core.Tracer) for x in leaves):
-        return fn(*args)  # run now: ``fn``'s own compiled call (and its cache)
-
-    def flat(*leaves):
-        return fn(*eqx.combine(jax.tree.unflatten(tree, leaves), static))
-
-    closed, shape = jax.make_jaxpr(flat, return_shape=True)(*leaves)
-    hoisted = _unrolled(closed)
-    if not _hoistable(hoisted.jaxpr, 0, reductions=False):
-        return jax.tree.unflatten(jax.tree.structure(shape), jex_core.jaxpr_as_fun(closed)(*leaves))
-    return _small_call(hoisted, leaves, shape)
