@@ -39,6 +39,8 @@ import optax
 import so3jax as so3
 
 DT = 0.0025
+LEARNING_RATE = 1e-3
+LOWER_BOUND = 0.5  # on every gain
 #: Tuning runs per mode (each compiles afresh): the fastest wall is reported, with the range.
 TUNE_ROUNDS = 2
 
@@ -53,14 +55,14 @@ scene = so3.scenes.quadrotor_circle(control_period={dt})
 cost = lambda tr: jnp.sum(tr.extras["e_x"] ** 2)
 t = time.perf_counter()
 so3.tune(scene, cost=cost, method=so3.RKMK4(), dt={dt}, n_steps={n_steps}, n_iter={n_iter},
-         optimizer=optax.sgd(1e-3), bounds=(0.5, None), gradient="reverse")
+         optimizer=optax.sgd({lr}), bounds=({lb}, None), gradient="reverse")
 print(time.perf_counter() - t)
 """
 
 
 def fresh_process_wall(n_steps: int, n_iter: int) -> float:
     """Seconds of `FRESH`'s tuning run (imports and the scene's construction excluded)."""
-    code = FRESH.format(dt=DT, n_steps=n_steps, n_iter=n_iter)
+    code = FRESH.format(dt=DT, n_steps=n_steps, n_iter=n_iter, lr=LEARNING_RATE, lb=LOWER_BOUND)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return float(out.stdout.strip().splitlines()[-1])
 
@@ -132,8 +134,8 @@ def main():
             dt=DT,
             n_steps=n_steps,
             n_iter=iterations,
-            optimizer=optax.sgd(1e-3),
-            bounds=(0.5, None),
+            optimizer=optax.sgd(LEARNING_RATE),
+            bounds=(LOWER_BOUND, None),
             gradient=mode,
         )
         return res, time.perf_counter() - t
@@ -221,8 +223,8 @@ def main():
             "n_steps": n_steps,
             "dt": DT,
             "n_iter": n_iter,
-            "learning_rate": 1e-3,
-            "lower_bound": 0.5,
+            "learning_rate": LEARNING_RATE,
+            "lower_bound": LOWER_BOUND,
             "method": "RKMK4",
             "timings": timings,
             "iteration_over_forward": {k: v["run_s"] / base for k, v in timings.items()},

@@ -752,6 +752,11 @@ def sweep(R: Results) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _spread(walls: list) -> str:
+    """`` (fastest–slowest)`` of several timed runs; nothing for one."""
+    return f" ({dur(min(walls))}–{dur(max(walls))})" if len(walls) > 1 else ""
+
+
 @block("difftune")
 def difftune(R: Results) -> str:
     d = R.get("difftune.json")
@@ -761,8 +766,7 @@ def difftune(R: Results) -> str:
     rows = [[k, dur(v["run_s"]), x(it[k]), dur(v["compile_s"])] for k, v in t.items()]
     n = d["n_iter"]
     for mode in d["tune_wall_s"]:
-        walls = d.get("tune_walls_s", {}).get(mode, [])
-        spread = f" ({dur(min(walls))}–{dur(max(walls))})" if len(walls) > 1 else ""
+        spread = _spread(d.get("tune_walls_s", {}).get(mode, []))
         rows.append(
             [
                 f"{n} iterations, {mode} mode: with compilation / loop alone / "
@@ -776,11 +780,10 @@ def difftune(R: Results) -> str:
         )
     fresh = d.get("tune_reverse_fresh_process_walls_s")
     if fresh:
-        spread = f" ({dur(min(fresh))}–{dur(max(fresh))})" if len(fresh) > 1 else ""
         rows.append(
             [
                 f"{n} iterations, reverse mode, in a fresh process (tracing included)",
-                f"{dur(min(fresh))}{spread}",
+                f"{dur(min(fresh))}{_spread(fresh)}",
                 "",
                 "",
             ]

@@ -379,12 +379,12 @@ def _pack(leaves: list) -> tuple[list, list]:
     """``(packed, spec)``: ``leaves`` raveled into one vector per dtype, and how to undo it
     (`_unpack`). A step's residuals leave a loop as a few stacked arrays, not one each:
     XLA compiles a kernel per stacked array and per read of it."""
-    groups: dict = {}
-    spec = []
+    groups: dict = {}  # dtype -> raveled leaves, in order
+    spec = []  # per leaf: (its dtype's index in ``groups``, its shape)
     for x in leaves:
         x = jnp.asarray(x)
         group = groups.setdefault(x.dtype, [])
-        spec.append((list(groups).index(x.dtype), len(group), x.shape, x.dtype))
+        spec.append((list(groups).index(x.dtype), x.shape))
         group.append(jnp.ravel(x))
     return [jnp.concatenate(g) if len(g) > 1 else g[0] for g in groups.values()], spec
 
@@ -393,7 +393,7 @@ def _unpack(packed: list, spec: list) -> list:
     """The leaves `_pack` packed into ``packed`` with ``spec``."""
     starts: dict = {}
     out = []
-    for g, _, shape, _ in spec:
+    for g, shape in spec:
         at = starts.get(g, 0)
         size = math.prod(shape)
         out.append(packed[g][at : at + size].reshape(shape))
