@@ -944,23 +944,18 @@ def test_dependence_walk():
 
 
 def test_gpu_layout_table(monkeypatch):
-    """On a GPU `batched_layout` takes ``gpu_layout``'s entries: a batch of 64 runs (scalarized
-    on the CPU) traces the array program there, 32768 runs the scalarized one; the one-pass
-    Jacobian of ``jacfwd`` over 64 runs is the array program there too (scalarized from
-    16384 runs); the other programs keep the CPU's table. (That both
-    layouts give the same numbers is `test_scalarize.py`'s.) Traces only: compiling them
-    would cost the suite seconds."""
+    """On a GPU `batched_layout` takes ``gpu_layout``'s entries, and the plan says so
+    (`so3jax.explain`): a batch of 64 runs (scalarized on the CPU) runs the array program
+    there, as many runs as its ``"run"`` entry the scalarized one; the one-pass Jacobian
+    of ``jacfwd`` over 64 runs is the array program there too; the other programs keep
+    the CPU's table. (That both layouts give the same numbers is `test_scalarize.py`'s.)
+    Traces only: compiling them would cost the suite seconds."""
     sc = s.scenes.seed()
     R0s = s.random_rotation(jax.random.key(4), (64,))
-    big = jnp.broadcast_to(R0s[0], (dict(_engine.policy.DEFAULT.gpu_layout)["run"][0], 3, 3))
+    big = jax.ShapeDtypeStruct((dict(_engine.policy.DEFAULT.gpu_layout)["run"][0], 3, 3), R0s.dtype)
 
-    def batch(R0s, scalarize=None):
-        return jax.vmap(
-            lambda R0: s.simulate(sc, s.RKMK4(), DT, 4, 2, scalarize=scalarize, R0=R0).R
-        )(R0s)
-
-    def size(*args):
-        return len(str(jax.make_jaxpr(batch, static_argnums=1)(*args)))
+    def batch(R0s):
+        return jax.vmap(lambda R0: s.simulate(sc, s.RKMK4(), DT, 4, 2, R0=R0).R)(R0s)
 
     def jacobian(R0s):
         def cost(k):
@@ -969,38 +964,28 @@ def test_gpu_layout_table(monkeypatch):
 
         return jax.jacfwd(cost)(jnp.array([8.81, 2.54]))
 
-    assert (
-        _engine.policy.batched_layout("run") == dict(_engine.policy.DEFAULT.batched_layout)["run"]
-    )
-    assert dict(_engine.policy.DEFAULT.batched_layout)["run"][0] <= 64  # scalarized on the CPU
-    assert dict(_engine.policy.DEFAULT.batched_layout)["jacobian"][0] <= 64
-    cpu_64 = len(str(jax.make_jaxpr(jacobian)(R0s)))
-    jax.clear_caches()  # batched jaxprs inside simulate may hold the CPU's layout
+    def layouts(fn, R0s, program):
+        plan = s.explain(fn, R0s)
+        return [(e["runs"], e["layout"]) for e in plan.of("layout") if e["program"] == program]
+
+    table = dict(_engine.policy.DEFAULT.batched_layout)
+    assert _engine.policy.batched_layout("run") == table["run"]
+    assert table["run"][0] <= 64 and table["jacobian"][0] <= 64  # scalarized on the CPU
+    assert layouts(batch, R0s, "run") == [(64, "scalarized")]
+    assert layouts(jacobian, R0s, "jacobian") == [(64, "scalarized")]
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     try:
-        assert (
-            _engine.policy.batched_layout("run") == dict(_engine.policy.DEFAULT.gpu_layout)["run"]
-        )
-        assert (
-            _engine.policy.batched_layout("jacobian")
-            == dict(_engine.policy.DEFAULT.gpu_layout)["jacobian"]
-        )
-        assert (
-            _engine.policy.batched_layout("jvp") == dict(_engine.policy.DEFAULT.gpu_layout)["jvp"]
-        )
+        gpu = dict(_engine.policy.DEFAULT.gpu_layout)
+        for program in ("run", "jacobian", "jvp"):
+            assert _engine.policy.batched_layout(program) == gpu[program]
         assert _engine.policy.batched_layout("adjoint") == (None, None)  # array only
-        small, array = size(R0s), size(R0s, False)
-        assert abs(small - array) < 0.05 * array  # the array program
-        assert size(big) > 1.1 * size(big, False)  # the scalarized program
+        assert layouts(batch, R0s, "run") == [(64, "array")]
+        assert layouts(batch, big, "run") == [(big.shape[0], "scalarized")]
         # jacfwd in (k_R, k_Omega) of 64 runs: the Jacobian program, array layout
-        gpu_64 = len(str(jax.make_jaxpr(jacobian)(R0s)))
+        assert layouts(jacobian, R0s, "jacobian") == [(64, "array")]
     finally:
         monkeypatch.undo()
-        jax.clear_caches()
-    assert (
-        _engine.policy.batched_layout("run") == dict(_engine.policy.DEFAULT.batched_layout)["run"]
-    )
-    assert cpu_64 > 1.2 * gpu_64  # the scalarized Jacobian program on the CPU only
+    assert _engine.policy.batched_layout("run") == table["run"]
 
 
 def test_sweep_program_default_per_platform(monkeypatch):
