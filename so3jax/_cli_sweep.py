@@ -378,7 +378,7 @@ def tune_main(argv=None) -> int:
     from . import _plot_sweep as plots, scenes
     from ._simulate import simulate
     from ._sweep import initial_states
-    from ._tune import CostWeights, _resolve_gradient, tune, with_gains
+    from ._tune import CostWeights, tune, with_gains
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -420,7 +420,7 @@ def tune_main(argv=None) -> int:
         "cost_history": result.cost_history.tolist(),
         "seconds": seconds,
         "dtype": args.dtype,
-        "gradient": _resolve_gradient(args.gradient, (result.gains.k_R, result.gains.k_Omega)),
+        "gradient": result.gradient,
         "n_attitudes": args.n_attitudes,
         "horizon": n_steps * args.dt,
         "inertia": scene_inertia(scene).astype(float).tolist(),

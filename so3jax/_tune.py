@@ -479,6 +479,8 @@ class TuneResult:
       pytree like `gains` whose leaves have a leading axis of length
       ``n_iter + 1`` (``None`` for the default tracking cost, whose histories
       are `k_R_history` and `k_Omega_history`).
+    - `gradient`: the mode each iteration's gradient was taken in, ``"forward"`` or
+      ``"reverse"`` (what ``gradient="auto"`` chose for the number of tuned scalars).
 
     With a custom ``cost`` (`tune`'s general mode), `gains` is a pytree like
     ``gains0`` and `k_R_history`, `k_Omega_history` are filled only when the
@@ -493,6 +495,7 @@ class TuneResult:
     k_Omega_history: np.ndarray | None
     best_iteration: int
     gains_history: object = None
+    gradient: str | None = None
 
 
 def _check_batch_shape(x, name: str, trailing: tuple[int, ...]) -> None:
@@ -740,7 +743,9 @@ def tune(
             checkpoint_every=checkpoint_every,
         )
 
-    history, thetas = _descend(loss, theta, optimizer, opt_state, n_iter, gradient, None, progress)
+    history, thetas, mode = _descend(
+        loss, theta, optimizer, opt_state, n_iter, gradient, None, progress
+    )
     cost = np.asarray(history)
     k_R_hist = np.exp(np.stack([np.asarray(t[0]) for t in thetas]))
     k_O_hist = np.exp(np.stack([np.asarray(t[1]) for t in thetas]))
@@ -755,6 +760,7 @@ def tune(
         k_R_history=k_R_hist,
         k_Omega_history=k_O_hist,
         best_iteration=best,
+        gradient=mode,
     )
 
 
@@ -798,13 +804,15 @@ def _value_and_grad(loss, gradient: str):
 
 
 def _descend(loss, params, optimizer, opt_state, n_iter, gradient, project, progress):
-    """``n_iter`` jitted optimiser steps; returns the costs and the iterates (``n_iter + 1``).
+    """``n_iter`` jitted optimiser steps; returns the costs and the iterates (``n_iter + 1``),
+    and the gradient's mode (`_resolve_gradient`).
 
     ``project`` (or ``None``) maps the updated parameters back into the feasible set.
     """
     import optax
 
-    value_and_grad = _value_and_grad(loss, _resolve_gradient(gradient, params))
+    mode = _resolve_gradient(gradient, params)
+    value_and_grad = _value_and_grad(loss, mode)
 
     @jit_own  # compiled with the engine's options for the library's own programs
     def step(params, opt_state):
@@ -835,7 +843,7 @@ def _descend(loss, params, optimizer, opt_state, n_iter, gradient, project, prog
         history.append(float(step(params, opt_state)[2]))
     else:
         history.append(float(jax.jit(loss)(params)))
-    return history, iterates
+    return history, iterates, mode
 
 
 def _default_where(scene):
@@ -942,7 +950,7 @@ def _tune_general(
 
     optimizer = optax.apply_if_finite(optimizer, max_consecutive_errors=5)
     opt_state = optimizer.init(params)
-    history, iterates = _descend(
+    history, iterates, mode = _descend(
         loss, params, optimizer, opt_state, n_iter, gradient, project, progress
     )
     costs = np.asarray(history)
@@ -962,4 +970,5 @@ def _tune_general(
         k_Omega_history=field("k_Omega"),
         best_iteration=best,
         gains_history=stacked,
+        gradient=mode,
     )
