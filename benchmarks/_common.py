@@ -201,7 +201,11 @@ def write_partial(args, name: str, rows: list) -> None:
 
 
 def save_figure(fig, path: Path) -> None:
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    """The figure as a PNG; a quick run's (``-quick``, a smoke test) at a low resolution."""
+    if path.stem.endswith("-quick"):
+        fig.savefig(path, dpi=40)
+    else:
+        fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     print(f"wrote {path}")
 
