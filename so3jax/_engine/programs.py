@@ -322,8 +322,8 @@ class Programs(Loop):
         other leaves have a zero tangent, so no cotangent reaching them contributes, and
         their entries of ``gP``, ``gc0`` are zeros. Per-step observation cotangents enter
         as the backward loop's inputs (`_step_cts`). A step's residuals pass between the
-        loops packed, one vector per dtype (`_pack`): stacked one by one, each was a
-        kernel of its own in each loop (``benchmarks/difftune.py``). Memory ``~ K + n / K``
+        loops packed, one vector per dtype (`_pack`): XLA compiles a kernel for each
+        stacked array in each loop (``benchmarks/difftune.py``). Memory ``~ K + n / K``
         steps.
         """
         K = self.K
@@ -363,9 +363,9 @@ class Programs(Loop):
         carry0 = (_pick(mc, ct_cN), acc0)
         cts = self._step_cts(list(ct_obs))
         if self.S == 1:
-            # One segment: its loops stand alone. A loop over one segment, hoisted whole,
-            # made XLA's older CPU emitter abort the process ("All or none of the slices
-            # should have an explicit index").
+            # One segment: its loops stand alone (XLA's older CPU emitter aborts on a loop
+            # over one segment hoisted whole: "All or none of the slices should have an
+            # explicit index").
             (lam, acc), _ = segment(carry0, (0, c0, jax.tree.map(lambda a: a[0], cts)))
         else:
             ck = self.checkpoints(P, c0) if ck is None else ck

@@ -193,10 +193,9 @@ def _array_jvp(array_fn: Callable, primals, tangents):
     batch (``vmap`` of `so3jax.rollout_cost`, say) fixes each output's batch axis
     from the function's. `_dual`'s ``custom_vmap`` batches every output on axis 0;
     JAX's ``vmap`` of a ``scan`` stacks on axis 0 and batches on axis 1, and leaves
-    unbatched what no batched input moves. Without `_batched_with` and `_front`,
-    ``jax.hessian`` of the mean cost over a batch of starts raised "Cannot
-    concatenate arrays with shapes that differ in dimensions other than the one
-    being concatenated".
+    unbatched what no batched input moves. `_batched_with` and `_front` make the two
+    agree, so that ``jax.hessian`` of the mean cost over a batch of starts
+    concatenates outputs batched alike.
     """
     leaves, treedef = jax.tree.flatten(primals)
     t_leaves, nz = _tangent_leaves(tangents)
@@ -235,7 +234,8 @@ _HAVE_LINEAR_CALL_BATCHING = _linear_call_batches()
 def first_order_only(why: str, res):
     """``res`` (residuals of a ``linear_call``) unchanged; ``NotImplementedError(why)``
     if they are differentiated, as in a second derivative: ``linear_call`` cannot
-    differentiate its residuals, and failed with a bare ``AssertionError``."""
+    differentiate its residuals, and the error says why (JAX's is a bare
+    ``AssertionError``)."""
     return res
 
 

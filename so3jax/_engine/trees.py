@@ -125,9 +125,8 @@ def _batched_with(out, inputs):
     rule, ``program="array"`` included); JAX's ``jvp`` of the checkpointed array
     program batches only the outputs that depend on a batched input or tangent
     (the run's times, say, do not), so `so3jax._engine.derivatives.Autodiff` passes its outputs
-    through here. Without it, ``jacfwd`` and ``grad`` of the mean of a ``vmap`` over
-    the quadrotor's 12 gains raised "Cannot concatenate arrays with different
-    numbers of dimensions". The zeros are ``where(False, ...)``
+    through here: ``jacfwd`` and ``grad`` of the mean of a ``vmap`` over the
+    quadrotor's 12 gains then see every output batched. The zeros are ``where(False, ...)``
     (not ``0 * x``: an infinite input stays out of the values), which XLA folds.
     """
     srcs = [

@@ -115,11 +115,10 @@ def _hoisted(loop: Callable, *args, xs_from: int | None = None):
     constant operands (a batch of starts closed over as a constant) into the call,
     and the older emitter aborts on constants of more than about 10 kB. The call
     also returns its inputs (unused): so they stay live to its end, and XLA cannot
-    hand an input's memory to a value inside the loop. On JAX 0.11 and 0.12 it did
-    (a loop's carry in an input's place, at the same offset, larger), and the older
-    emitter then aborted the process (``Check failed:
-    slice_to_buffer_table_index_.empty() || has_explicit_index``; the gradient of a
-    free body's run whose start was a constant of the jitted cost). A loop that
+    hand an input's memory to a value inside the loop (a loop's carry in an input's
+    place, at the same offset, larger), on which the older emitter aborts the process
+    (``Check failed: slice_to_buffer_table_index_.empty() || has_explicit_index``, with
+    JAX 0.11 and 0.12: `test_engine.py::test_hoisted_call_returns_its_inputs`). A loop that
     holds reductions where `_tracing` allows none (a derivative program's), or one
     over more than ``hoist_max_reduced`` elements, is hoisted with its reductions written
     out (`_unrolled`) if that is all that stood in the way. Loops with a primitive
