@@ -460,9 +460,8 @@ def _abc_coeffs(t: Array) -> tuple[Array, Array, Array]:
     A and B as in `_ab_coeffs`. ``C = (th - sin th) / th^3 = (1 - A) / t`` loses
     digits to cancellation near 0 (about ``12 eps`` at the cut-off), so it takes
     the 9-term series below `_cutoff` as `_coeffs` does; above it, ``1 - A`` from
-    the same closed form of A. One sine and cosine instead of three (the rule
-    of an exponential update used to take A and B at one cut-off and B and C
-    at another: two arguments, so nothing to share).
+    the same closed form of A. One sine and cosine for all three: every
+    coefficient is taken at the one cut-off.
     """
     A, B = _ab_coeffs(t)
     small_c, ts, _ = _safe_theta(t, _cutoff(t.dtype))
