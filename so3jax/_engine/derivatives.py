@@ -134,13 +134,14 @@ class OnePassJacobian(Strategy):
         P, c0 = primals
         nz, lin = _nonzero(primals, tangents)
         n_pf = len(_floats(P))
+        mP, mc, elements = _tangent_masks(loop.step, P, c0, nz[:n_pf], nz[n_pf:], elements=True)
         _plan.note(
             "derivative",
             strategy=self.name,
             scalars=_size(lin),
+            carried=tuple(mc),
             why=f"at most forward_jacobian_max = {current().forward_jacobian_max} scalars",
         )
-        mP, mc, elements = _tangent_masks(loop.step, P, c0, nz[:n_pf], nz[n_pf:], elements=True)
         return _jacobian_jvp(loop, P, c0, nz, lin, mP, mc, elements)
 
 

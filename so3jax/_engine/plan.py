@@ -107,8 +107,11 @@ class Plan:
         - ``"derivative"``: how a run is differentiated (``strategy``:
           ``"one-pass Jacobian"``, ``"checkpointed jvp"`` (JAX's autodiff of the
           checkpointed array program), ``"checkpointed jvp, discrete adjoint"``
-          or ``"second derivative"``; ``scalars``: the differentiated scalars; ``why``);
-          the strategies are `so3jax._engine.derivatives`' objects;
+          or ``"second derivative"``; ``scalars``: the differentiated scalars; ``why``;
+          for the one-pass Jacobian ``carried``: per float leaf of the loop's carry,
+          whether the tangent program carries its tangent, ``False`` for a leaf no
+          differentiated input reaches, such as the reference attitude under the
+          gains); the strategies are `so3jax._engine.derivatives`' objects;
         - ``"tiles"``: a batch run in ``n`` tiles of ``size`` runs, one after the other;
         - ``"frames"``: a scalarized Jacobian program carrying ``rotations`` attitude
           tangents as three numbers (0: every rotation's tangent as nine);
