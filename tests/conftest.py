@@ -115,19 +115,30 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: -_MODULE_SECONDS.get(item.path.name, 0))
 
 
-def _count_cuts(jaxpr) -> int:
-    from so3jax._engine.passes.cuts import _is_cut
-
-    n = 0
+def _equations(jaxpr):
+    """Every equation of ``jaxpr``, those of its nested jaxprs included (depth first)."""
     for e in jaxpr.eqns:
-        n += e.primitive.name == "cond" and _is_cut(e.params["branches"])
+        yield e
         for v in e.params.values():
             for sub in v if isinstance(v, (tuple, list)) else (v,):
                 if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                    n += _count_cuts(sub.jaxpr)
+                    yield from _equations(sub.jaxpr)
                 elif isinstance(sub, jax.extend.core.Jaxpr):
-                    n += _count_cuts(sub)
-    return n
+                    yield from _equations(sub)
+
+
+def _count_cuts(jaxpr) -> int:
+    from so3jax._engine.passes.cuts import _is_cut
+
+    return sum(
+        e.primitive.name == "cond" and _is_cut(e.params["branches"]) for e in _equations(jaxpr)
+    )
+
+
+@pytest.fixture
+def equations():
+    """``equations(jaxpr)``: every equation of a jaxpr, nested ones included."""
+    return _equations
 
 
 @pytest.fixture

@@ -91,7 +91,7 @@ def test_throughput_sweep_labels():
     assert program("RKMK4", tp["VARIANTS"]) == array
 
 
-def test_unrolled_step_loops_change_the_program_not_the_results():
+def test_unrolled_step_loops_change_the_program_not_the_results(equations):
     """`unroll.unrolled(u)` traces the engine's step loops unrolled (a larger lowered
     program, also after a trace with the default) and leaves the run as it was. (Not
     differentiated here: a gradient through the unrolled loop compiles for 12 s, and
@@ -108,19 +108,9 @@ def test_unrolled_step_loops_change_the_program_not_the_results():
     def run(scene):
         return s.simulate(scene, s.RKMK4(), 0.01, 7, 1).R
 
-    def unrolls(jaxpr=None):  # the `unroll` of every scan in the traced run
-        jaxpr = jax.make_jaxpr(run)(scene).jaxpr if jaxpr is None else jaxpr
-        found = []
-        for e in jaxpr.eqns:
-            if e.primitive.name == "scan":
-                found.append(e.params["unroll"])
-            for v in e.params.values():
-                for sub in v if isinstance(v, (tuple, list)) else (v,):
-                    if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                        found += unrolls(sub.jaxpr)
-                    elif isinstance(sub, jax.extend.core.Jaxpr):
-                        found += unrolls(sub)
-        return found
+    def unrolls():  # the `unroll` of every scan in the traced run
+        jaxpr = jax.make_jaxpr(run)(scene).jaxpr
+        return [e.params["unroll"] for e in equations(jaxpr) if e.primitive.name == "scan"]
 
     plain = run(scene)
     assert unrolls() and set(unrolls()) == {1}
