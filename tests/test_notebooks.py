@@ -17,6 +17,7 @@ from the current code.
 
 from __future__ import annotations
 
+import gc
 import importlib.util
 import json
 import os
@@ -80,11 +81,17 @@ def test_notebook_outputs_are_current(path):
 def _write_kernel_spec(folder: Path) -> None:
     """A kernel spec that starts this very interpreter, whichever virtualenv it is.
 
-    (A user-wide ``python3`` spec could point at another Python.)
+    (A user-wide ``python3`` spec could point at another Python.) The kernel runs
+    Python's garbage collector as seldom as the suite's workers do (``conftest.py``),
+    and otherwise starts as ``python -m ipykernel_launcher`` does.
     """
     spec = folder / "kernels" / KERNEL
     spec.mkdir(parents=True)
-    argv = [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"]
+    start = (
+        f"import gc; gc.set_threshold{gc.get_threshold()}; "
+        "from ipykernel import kernelapp; kernelapp.launch_new_instance()"
+    )
+    argv = [sys.executable, "-c", start, "-f", "{connection_file}"]
     kernel = {"argv": argv, "display_name": "so3jax tests", "language": "python"}
     (spec / "kernel.json").write_text(json.dumps(kernel))
 
