@@ -317,7 +317,7 @@ def _toy_second(P, program, jit):
 
 
 @pytest.mark.parametrize("n", [2, 10])
-def test_second_derivatives_equal_autodiff(n, monkeypatch):
+def test_second_derivatives_equal_autodiff(n):
     """``jax.hessian`` and the other second (and third) derivatives of runs, jitted or
     not, single or batched (3 runs: the array layout; 40: scalarized), equal JAX's
     autodiff of the checkpointed array program. The engine's rules run their programs
@@ -326,18 +326,11 @@ def test_second_derivatives_equal_autodiff(n, monkeypatch):
     failed to produce known values", or "Cannot concatenate" under a jitted batch).
     ``jacfwd`` of ``jacfwd`` and ``jvp`` of ``jacfwd`` of a jitted run break when the
     ``linear_call`` batching rule batches every output under a ``vmap`` nothing in the
-    call depends on (docs/engine.md, "Second derivatives"). Through few scalars a batch
-    of 40 differentiates its one-pass Jacobian program scalarized (`_engine.layout._dual_jvp`)."""
+    call depends on (docs/engine.md, "Second derivatives"). Through few scalars the plan
+    of a batch's Hessian differentiates its one-pass Jacobian program scalarized
+    (`_engine.layout._dual_jvp`): from 40 runs its ``jvp`` too, at 20 only the Jacobian."""
     p = jnp.linspace(1.3, 0.7, n)
     u = jnp.linspace(-1.0, 1.0, n)
-    scalarized = []
-    jac_scalar = _engine.programs.Programs.jac_scalar
-
-    def spy(self, *args, **kwargs):
-        scalarized.append(1)
-        return jac_scalar(self, *args, **kwargs)
-
-    monkeypatch.setattr(_engine.programs.Programs, "jac_scalar", spy)
 
     def mean(program, jit, ps):
         one = lambda q: _toy_second(q, program, jit)  # noqa: E731
@@ -362,9 +355,16 @@ def test_second_derivatives_equal_autodiff(n, monkeypatch):
         if n > _engine.policy.current().forward_jacobian_max:
             return out  # JAX's own jvp there: one case guards the composition
         if program == "auto":
-            # The gradient's (the `custom_jvp` function, which JAX batches too), and in the
-            # Hessian's rule (`_dual_jvp`) its value's and its tangent's.
-            assert len(scalarized) == 3, scalarized
+            for batch, runs, jvp_layout in ((big, 40, "scalarized"), (mid, 20, "array")):
+                # Every Jacobian program of the batch (the gradient's, and in the Hessian's
+                # rule its value's) runs scalarized, and its jvp as `batched_layout` says.
+                plan = s.explain(jax.hessian(batch), jnp.ones(n))
+                layouts = {
+                    (e["program"], e["layout"])
+                    for e in plan.of("layout")
+                    if e["runs"] == runs and e["program"] in ("jacobian", "jvp")
+                }
+                assert layouts == {("jacobian", "scalarized"), ("jvp", jvp_layout)}, plan
         return out | {
             # The value of `_dual_jvp` (the gradient beside its jvp) and third derivatives
             # through it, scalarized.
