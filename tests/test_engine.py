@@ -216,35 +216,27 @@ def _toy(P, program, K=None):
     return jnp.sum(ys) + jnp.sum(jnp.cos(cN[0]))
 
 
-def test_checkpointed_jvp_differentiates_each_loop_once(monkeypatch):
+def test_checkpointed_jvp_starts_settled_carry_tangents():
     """JAX's ``jvp`` of the checkpointed program (`_engine.derivatives.Autodiff`) starts the
-    carry leaves that a step makes nonzero with zero tangents, so each loop is
-    differentiated once (JAX's own fixed point: two passes over a loop whose carry
-    tangents start as symbolic zeros, each differentiating the loops inside it again).
-    Same gradients."""
-    from jax._src.interpreters import ad
-    from jax.extend.core.primitives import scan_p
-
-    calls, rule = [], ad.primitive_jvps[scan_p]
-
-    def spy(*args, **kwargs):
-        calls.append(1)
-        return rule(*args, **kwargs)
-
-    monkeypatch.setitem(ad.primitive_jvps, scan_p, spy)
-    ref = jax.grad(_toy)(1.7, "autodiff")
-    counts = {}
-    for settle in (True, False):
-        if not settle:
-            monkeypatch.setattr(
-                _engine.derivatives, "_settle_carry_tangents", lambda *a: (a[3], a[4])
-            )
-        calls.clear()
-        g = jax.grad(_toy)(1.7, "array")
-        counts[settle] = len(calls)
+    carry leaves that a step makes nonzero with zero tangents (the ``"settle"`` pass), so
+    that JAX differentiates each of the three nested loops (segments, saved points, steps)
+    once, where its own fixed point takes two passes over a loop whose carry tangents start
+    as symbolic zeros, each differentiating the loops inside it again. The plan says so;
+    the gradient is the same with the pass off and with every pass off."""
+    with _engine.policy.using(passes=frozenset()):
+        ref = jax.grad(_toy)(1.7, "autodiff")
+    for passes in (_engine.policy.PASSES, _engine.policy.PASSES - {"settle"}):
+        with _engine.policy.using(passes=passes):
+            plan = s.explain(jax.grad(_toy), 1.7, program="array")
+            g = jax.grad(_toy)(1.7, "array")
+        settled = [e for e in plan.of("settle") if e["what"] == "carry tangents"]
+        # the carry's one float leaf (the counter has no tangent)
+        assert settled == (
+            [{"kind": "settle", "what": "carry tangents", "leaves": 1}]
+            if "settle" in passes
+            else []
+        ), plan
         assert _rel(g, ref) < 1e-12
-    # Three nested loops (segments, saved points, steps), each differentiated once.
-    assert counts[True] == 3 and counts[False] > 3, counts
 
 
 def test_vmap_of_grad_equals_loop_of_grads():
@@ -394,40 +386,30 @@ def test_second_derivatives_equal_autodiff(n):
         assert _rel(got[name], ref[name]) < 1e-12, name
 
 
-def test_second_derivatives_differentiate_each_loop_once(monkeypatch):
+def test_second_derivatives_start_settled_carry_tangents():
     """``jax.hessian`` over a scalarized batch (40 runs) differentiates the one-pass
     Jacobian program, whose carry tangents start as symbolic zeros: JAX's fixed point
-    differentiated the loop of saved points twice, and the step loop inside it on each
-    pass, in the array and the scalarized program alike. `_dual_jvp` starts them with
-    zeros (`_engine.derivatives._settle_jacobian_tangents`): each loop once. Same Hessian."""
-    from jax._src.interpreters import ad
-    from jax.extend.core.primitives import scan_p
-
-    calls, rule = [], ad.primitive_jvps[scan_p]
-
-    def spy(*args, **kwargs):
-        calls.append(1)
-        return rule(*args, **kwargs)
-
-    monkeypatch.setitem(ad.primitive_jvps, scan_p, spy)
+    differentiates the loop of saved points twice, and the step loop inside it on each
+    pass, in the array and the scalarized program alike. The ``"settle"`` pass
+    (`jacobian_tangents`) starts them with zeros in `_dual_jvp`: each loop once. The plan
+    says so; the Hessian is the same with the pass off."""
     ps = jnp.linspace(1.3, 0.7, 2) * jnp.linspace(0.8, 1.2, 40)[:, None]
 
     def mean(program):
         return lambda k: jnp.mean(jax.vmap(lambda q: _toy_second(q * k, program, True))(ps))
 
-    ref = jax.hessian(mean("autodiff"))(jnp.ones(2))
-    counts = {}
-    for settle in (True, False):
-        if not settle:
-            monkeypatch.setattr(
-                _engine.derivatives, "_settle_jacobian_tangents", lambda *a: (a[-2], a[-1])
-            )
-        calls.clear()
-        H = jax.hessian(mean("auto"))(jnp.ones(2))
-        counts[settle] = len(calls)
+    with _engine.policy.using(passes=frozenset()):
+        ref = jax.hessian(mean("autodiff"))(jnp.ones(2))
+    for passes in (_engine.policy.PASSES, _engine.policy.PASSES - {"settle"}):
+        with _engine.policy.using(passes=passes):
+            plan = s.explain(jax.hessian(mean("auto")), jnp.ones(2))
+            H = jax.hessian(mean("auto"))(jnp.ones(2))
+        second = [
+            e["program"] for e in plan.of("derivative") if e["strategy"] == "second derivative"
+        ]
+        assert "jacobian" in second, plan
+        assert bool(plan.of("settle")) == ("settle" in passes), plan
         assert _rel(H, ref) < 1e-12
-    # Two programs (array, scalarized), each two nested loops differentiated once.
-    assert counts[True] == 4 and counts[False] > 4, counts
 
 
 def test_reverse_over_reverse_transposes_by_columns(monkeypatch):
@@ -534,48 +516,38 @@ def _first_scan(jaxpr):
     return None
 
 
-def _spy_batch_jaxpr(monkeypatch) -> list:
-    """The equation counts of the jaxprs JAX batches from now on
-    (`batching.batch_jaxpr_axes`, which `batching.batch_jaxpr` calls up to JAX 0.11 and
-    a loop's batching rule calls itself from 0.12)."""
-    from jax._src.interpreters import batching
-
-    calls, original = [], batching.batch_jaxpr_axes
-
-    def spy(jaxpr, *args, **kwargs):
-        calls.append(len(getattr(jaxpr, "jaxpr", jaxpr).eqns))
-        return original(jaxpr, *args, **kwargs)
-
-    monkeypatch.setattr(batching, "batch_jaxpr_axes", spy)
-    return calls
-
-
-def test_batched_array_loops_are_batched_once(monkeypatch):
+def test_batched_array_loops_start_settled():
     """Below the scalarized program's batch size, ``vmap`` runs the array program with its
-    loops' carries settled up front (`_engine.layout._Traced`): JAX batches each loop body once
-    (its own fixed point would batch the outer body three times here, and the inner one
-    once per pass), what never depends on the batch stays unbatched, and the values are
-    those of single runs."""
-    calls = _spy_batch_jaxpr(monkeypatch)
+    loops' carries settled up front (the ``"settle"`` pass, in `_engine.layout._Traced`):
+    ``e`` and ``b``, which the loop would batch one and two steps in, are batched before
+    it, so that JAX batches each loop body once (its own fixed point would batch the outer
+    body three times here, and the inner one once per pass); what never depends on the
+    batch stays unbatched, and the values are those of single runs. With the pass off,
+    JAX's fixed point gives the same loop and values."""
     a0 = jnp.array([0.1, -0.7, 1.3])
-    jaxpr = jax.make_jaxpr(jax.vmap(_chain))(a0)
-    assert len(calls) == 2, calls  # the save loop's body, then the inner loop's
-    scan = _first_scan(jaxpr.jaxpr)  # the save loop (inside the engine's custom rules)
-    nc, ncar = sc.scan_split(scan)
-    shapes = [v.aval.shape for v in scan.invars[nc : nc + ncar]]
-    assert shapes == [(3,), (3,), (3,), (), ()], shapes  # d and the counter shared
-    got = jax.jit(jax.vmap(_chain))(a0)
-    for i, a in enumerate(a0):
-        one = _chain(a)
-        for g, r in zip(jax.tree.leaves(got), jax.tree.leaves(one), strict=True):
-            np.testing.assert_allclose(np.asarray(g)[i], r, rtol=1e-14)
+    for on in (True, False):
+        passes = _engine.policy.PASSES - (set() if on else {"settle"})
+        with _engine.policy.using(passes=passes):
+            plan = s.explain(jax.vmap(_chain), a0)
+            jaxpr = jax.make_jaxpr(jax.vmap(_chain))(a0)
+            got = jax.jit(jax.vmap(_chain))(a0)
+        expected = [{"kind": "settle", "what": "batched carry", "components": 2}]
+        assert plan.of("settle") == (expected if on else []), plan
+        scan = _first_scan(jaxpr.jaxpr)  # the save loop (inside the engine's custom rules)
+        nc, ncar = sc.scan_split(scan)
+        shapes = [v.aval.shape for v in scan.invars[nc : nc + ncar]]
+        assert shapes == [(3,), (3,), (3,), (), ()], shapes  # d and the counter shared
+        for i, a in enumerate(a0):
+            one = _chain(a)
+            for g, r in zip(jax.tree.leaves(got), jax.tree.leaves(one), strict=True):
+                np.testing.assert_allclose(np.asarray(g)[i], r, rtol=1e-14)
 
 
 def test_scan_split_reads_loop_operands_and_unknown_loops_fall_back(monkeypatch):
     """`sc.scan_split` finds a loop's constants and carry (JAX 0.10 names the counts;
     0.11 groups the operands instead, checked on a GPU machine's JAX 0.11.2).
     Where it cannot read a loop (``None``, what a later JAX might give), ``vmap`` leaves
-    that loop's batching to JAX: more batching passes, the same values."""
+    that loop's batching to JAX: nothing settled, the same values."""
 
     w = jnp.arange(3.0)
 
@@ -607,11 +579,11 @@ def test_scan_split_reads_loop_operands_and_unknown_loops_fall_back(monkeypatch)
         as_011 = scan.replace(params={**params, "ft_in": ft_in})
         assert sc.scan_split(as_011) == want
 
-    calls = _spy_batch_jaxpr(monkeypatch)
     monkeypatch.setattr(sc, "scan_split", lambda e: None)
     a0 = jnp.array([0.1, -0.7, 1.3])
+    plan = s.explain(jax.vmap(_chain), a0)
+    assert not plan.of("settle"), plan  # the loop is left to JAX's own fixed point
     got = jax.vmap(_chain)(a0)
-    assert len(calls) > 2, calls  # JAX's own fixed point: bodies batched more than once
     for i, a in enumerate(a0):
         for g, r in zip(jax.tree.leaves(got), jax.tree.leaves(_chain(a)), strict=True):
             np.testing.assert_allclose(np.asarray(g)[i], r, rtol=1e-14)

@@ -36,13 +36,13 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 from . import plan as _plan
 from .layout import _dual
 from .linear_call import linear_call
 from .masks import _tangent_masks
+from .passes import settle
 from .passes.frames import OBS_DENSE, OBS_LEFT, OBS_ZERO, _frame_dense, _with_frames
 from .policy import current
 from .programs import Programs
@@ -66,7 +66,6 @@ from .trees import (
     _tangent_leaves,
     _tangent_tree,
     _unit_columns,
-    _zero_like_tangent,
 )
 
 __all__ = [
@@ -118,7 +117,7 @@ class Autodiff(Strategy):
         t_leaves, nz = _tangent_leaves(tangents)
         n = sum(math.prod(jnp.shape(t)) for t, z in zip(t_leaves, nz, strict=True) if z)
         _plan.note("derivative", strategy=self.name, scalars=n, why=self.why)
-        t_leaves, nz = _settle_carry_tangents(loop.step, primals, p_leaves, t_leaves, nz)
+        t_leaves, nz = settle.carry_tangents(loop.step, primals, p_leaves, t_leaves, nz)
         out, tan = _jvp_through(loop.fwd_checkpointed, treedef, p_leaves, t_leaves, nz)
         return _batched_with(out, primals), tan  # batched as the run's forward programs are
 
@@ -173,7 +172,7 @@ class CheckpointedAdjoint(Strategy):
         n = sum(math.prod(jnp.shape(t)) for t, z in zip(t_leaves, nz, strict=True) if z)
         _plan.note("derivative", strategy=self.name, scalars=n, why=self.why)
         real = list(nz)
-        t_leaves, nz = _settle_carry_tangents(loop.step, primals, p_leaves, t_leaves, nz)
+        t_leaves, nz = settle.carry_tangents(loop.step, primals, p_leaves, t_leaves, nz)
         P, c0 = primals
         ck = None
         if loop.S > 1 and loop.K % loop.save_every == 0:
@@ -303,7 +302,7 @@ def _jacobian_jvp(loop: Programs, P, c0, nz: list, lin: list, mP: tuple, mc: tup
         functools.partial(loop.jac_array, mP, mc, mo),
         functools.partial(loop.jac_scalar, mP, mc, mo),
         "jacobian",
-        settle=functools.partial(_settle_jacobian_tangents, loop, mP, mc),
+        settle=functools.partial(settle.jacobian_tangents, loop, mP, mc),
     )
     ys, cN, Jys, JcN = jac(P, c0, dP, dc)
     coef = jnp.concatenate([jnp.ravel(x) for x in lin])
@@ -323,52 +322,6 @@ def _jacobian_jvp(loop: Programs, P, c0, nz: list, lin: list, mP: tuple, mc: tup
     dcN = [jnp.tensordot(coef.astype(J.dtype), J, axes=1) for J in JcN]
     dcNf = _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(cN)])
     return (ys, cN), (dys, _tangent_tree(cN, dcNf))
-
-
-def _settle_carry_tangents(step, primals, p_leaves, t_leaves, nz) -> tuple[list, list]:
-    """``(t_leaves, nz)`` with a zero tangent, not a symbolic one, for each initial carry
-    leaf that a step gives a nonzero tangent (`_tangent_masks`), flagged nonzero.
-
-    JAX's ``jvp`` of a ``scan`` finds which carry tangents are nonzero by
-    differentiating the body until nothing changes, and under ``grad`` its partial
-    evaluator finds the unknown carry the same way; in the checkpointed program the
-    inner loop is differentiated again on every pass of the outer one. Starting those
-    leaves with a zero tangent settles both in one pass. The zero is computed from an
-    input tangent (`_zero_like_tangent`), so the partial evaluator sees it as unknown too.
-    """
-    P, c0 = primals
-    n_P = len(jax.tree.leaves(P))
-    floats = [_is_float(x) for x in p_leaves]
-    nz_P, nz_c = _pick(floats[:n_P], nz[:n_P]), _pick(floats[n_P:], nz[n_P:])
-    sources = [t for t, z, f in zip(t_leaves, nz, floats, strict=True) if z and f and t.size]
-    if not sources or all(nz_c):
-        return t_leaves, nz
-    _, mc = _tangent_masks(step, P, c0, nz_P, nz_c)
-    it = iter(mc)
-    t_leaves, nz = list(t_leaves), list(nz)
-    for i in range(n_P, len(p_leaves)):
-        if floats[i] and next(it) and not nz[i]:
-            t_leaves[i], nz[i] = _zero_like_tangent(p_leaves[i], sources[0]), True
-    return t_leaves, nz
-
-
-def _settle_jacobian_tangents(loop: Programs, mP, mc, primals, p_leaves, t_leaves, nz):
-    """`_settle_carry_tangents` for the Jacobian program (`Programs.jac_array`), whose
-    arguments ``(P, c0, dP, dc0)`` are a loop's parameters ``(P, dP)`` and its carry
-    ``(c0, dc0)``: the carry tangents of second derivatives (`_dual_jvp`)."""
-    sizes = [len(jax.tree.leaves(x)) for x in primals]
-    a, b, c = np.cumsum(sizes)[:3].tolist()
-    order = [*range(a), *range(b, c), *range(a, b), *range(c, len(p_leaves))]
-    P, c0, dP, dc0 = primals
-    t, z = _settle_carry_tangents(
-        functools.partial(loop.jac_step, mP, mc),
-        ((P, dP), (c0, dc0)),
-        [p_leaves[i] for i in order],
-        [t_leaves[i] for i in order],
-        [nz[i] for i in order],
-    )
-    back = np.argsort(order).tolist()
-    return [t[i] for i in back], [z[i] for i in back]
 
 
 # --------------------------------------------------------------------------

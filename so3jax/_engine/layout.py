@@ -21,7 +21,7 @@ from jax.custom_batching import custom_vmap
 from jax.extend import core as jex_core
 
 from . import plan as _plan
-from .passes import scalarize as sc
+from .passes import scalarize as sc, settle as settle_pass
 from .passes.cuts import cut_index
 from .passes.hoist import _hoisted, _tracing
 from .passes.tiles import _in_tiles, batch_tiles
@@ -120,10 +120,10 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     ``jacfwd``'s basis of ``jacfwd`` of ``jacfwd`` too), and batching its outputs there
     would batch this rule's value with its tangent.
 
-    ``settle(primals, leaves, t_leaves, nz) -> (t_leaves, nz)`` (`_dual`'s, the Jacobian
-    program's `_settle_jacobian_tangents`) starts the loop's carry tangents that a step
-    makes nonzero with zeros, so that JAX differentiates and batches each loop of the
-    ``jvp`` programs once (shorter to lower; the same run and compile times).
+    ``settle(primals, leaves, t_leaves, nz) -> (t_leaves, nz)`` (`_dual`'s; the Jacobian
+    program's is the ``"settle"`` pass's `jacobian_tangents`) starts the loop's carry
+    tangents that a step makes nonzero with zeros, so that JAX differentiates and batches
+    each loop of the ``jvp`` programs once.
     """
     _plan.note("derivative", strategy="second derivative", program=what)
     if what not in ("run", "jacobian") or not _HAVE_LINEAR_CALL_BATCHING:
@@ -159,11 +159,11 @@ class _Traced:
     two passes over the forward loop's body for the seed (the run's status
     starts unbatched), two over the Jacobian program's (its tangents start as
     unbatched zeros), each nested scan once more per pass. `vmap` walks
-    the jaxpr's top-level equations and, before each loop, batches the carry
-    components that its body would batch (`sc.carry_fixed_point`: the same
-    fixed point, on flags), so that JAX batches each body once. What stays unbatched
-    (the reference attitude a batch shares) stays so. The scalarized programs do
-    the same on their flat components (`sc.settle_batched`, the same fixed point).
+    the jaxpr's top-level equations; with the ``"settle"`` pass, before each loop it
+    batches the carry components that its body would batch (`settle.batched_carries`:
+    the same fixed point, on flags), so that JAX batches each body once. What stays
+    unbatched (the reference attitude a batch shares) stays so. The scalarized programs
+    do the same on their flat components (`sc.settle_batched`, part of ``"scalarize"``).
     """
 
     def __init__(self, closed, out_tree):
@@ -205,11 +205,8 @@ class _Traced:
             bs = [is_batched(v) for v in e.invars]
             split = sc.scan_split(e) if flags is not None and e.primitive.name == "scan" else None
             if split is not None:
-                nc, ncar = split
-                settled = sc.carry_fixed_point(e.params["jaxpr"].jaxpr, bs, nc, ncar)
-                for i, (now, then) in enumerate(zip(bs[nc : nc + ncar], settled, strict=True)):
-                    if then and not now:
-                        ins[nc + i], bs[nc + i] = _batch_by(ins[nc + i], one), True
+                body, batch = e.params["jaxpr"].jaxpr, lambda x: _batch_by(x, one)
+                ins, bs = settle_pass.batched_carries(body, split, ins, bs, batch)
             params = e.primitive.get_bind_params(e.params)
             with e.ctx.manager:
                 if e.primitive.name == "scan":

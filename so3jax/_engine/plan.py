@@ -113,6 +113,9 @@ class Plan:
           differentiated input reaches, such as the reference attitude under the
           gains); the strategies are `so3jax._engine.derivatives`' objects;
         - ``"tiles"``: a batch run in ``n`` tiles of ``size`` runs, one after the other;
+        - ``"settle"``: a loop started where JAX's fixed point over its carry ends
+          (``what``: ``"batched carry"`` with the ``components`` batched before the
+          loop, or ``"carry tangents"`` with the ``leaves`` given zero tangents);
         - ``"frames"``: a scalarized Jacobian program carrying ``rotations`` attitude
           tangents as three numbers (0: every rotation's tangent as nine);
         - ``"hoisting"``: whether a loop compiles as one kernel on a CPU (``hoisted``,

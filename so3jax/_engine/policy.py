@@ -51,12 +51,14 @@ __all__ = ["PASSES", "Policy", "DEFAULT", "current", "using"]
 #: - ``"frames"``: attitude tangents as three numbers in the Jacobian programs;
 #: - ``"hoist"``: each loop one kernel on a CPU;
 #: - ``"unroll"``: small reductions written out term by term (so derivative loops hoist);
-#: - ``"tiles"``: a large batch of Jacobian programs in cache-sized tiles.
+#: - ``"tiles"``: a large batch of Jacobian programs in cache-sized tiles;
+#: - ``"settle"``: each loop starts with the carry batched and differentiated as JAX's
+#:   fixed point over its body would end, so that JAX transforms the body once.
 #:
 #: With none of them, a run executes the array program (``lax.scan`` of the step as
 #: written), vmapped by JAX under ``vmap``; derivatives keep their strategy
 #: (`so3jax._engine.derivatives`).
-PASSES = frozenset({"scalarize", "cuts", "frames", "hoist", "unroll", "tiles"})
+PASSES = frozenset({"scalarize", "cuts", "frames", "hoist", "unroll", "tiles", "settle"})
 
 
 def hoisting_verified() -> bool:

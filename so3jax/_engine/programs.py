@@ -192,7 +192,7 @@ class Programs(Loop):
 
     def jac_step(self, mP, mc, Pj, cj):
         """`_jac_body` as a step of a loop with parameters ``(P, dP)`` and carry
-        ``(c, dc)`` (`_settle_jacobian_tangents`)."""
+        ``(c, dc)`` (`so3jax._engine.passes.settle.jacobian_tangents`)."""
         (P, dP), (c, dc) = Pj, cj
         _, c1, _, dc1 = self._jac_body(mP, _dense_mask(mc), (P, c, dP, dc))
         return c1, dc1

@@ -42,6 +42,7 @@ NEEDS = {
     "hoist": set(),
     "unroll": {"hoist"},
     "tiles": {"scalarize"},
+    "settle": set(),
 }
 
 #: Thresholds low enough for a batch of `B` runs with two tangent columns to take every

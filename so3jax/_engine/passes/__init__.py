@@ -9,7 +9,8 @@ the active `so3jax._engine.policy.Policy` (``policy.on(name)``):
 - `frames`: attitude tangents as three numbers in the Jacobian programs;
 - `hoist`: each loop one kernel on a CPU;
 - `unroll`: small reductions written out term by term;
-- `tiles`: a batch of Jacobian programs in cache-sized tiles.
+- `tiles`: a batch of Jacobian programs in cache-sized tiles;
+- `settle`: each loop starts where JAX's fixed point over its carry ends.
 
 Each has a test module in ``tests/passes/`` proving its equality with the reference
 under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian``, and a row in
