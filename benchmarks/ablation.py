@@ -12,6 +12,8 @@ program, "autodiff" (every pass off and ``program="autodiff"``: the checkpointed
   100 steps, the final state saved;
 - ``grad``: `jax.grad` of `so3jax.expected_cost` over 256 starts with respect to
   ``(k_R, k_Omega)``, 200 steps;
+- ``small grad``: the same over 8 starts, a batch below the scalarized layout's
+  threshold: the array program, vmapped (where the ``settle`` pass acts);
 - ``run grad``: `jax.grad` of one run's cost, the sum of ``|Omega|^2`` over the 1000 saved
   states of ``run``, with respect to ``(k_R, k_Omega)``, no `vmap`: the derivative program
   is the array layout, whose loop the engine hoists only with its small reductions
@@ -21,12 +23,15 @@ program, "autodiff" (every pass off and ``program="autodiff"``: the checkpointed
   2.5 ms;
 - ``quadrotor grad``: its `jax.value_and_grad` with respect to the 12 gains.
 
-`so3jax.simulate` takes no program: "autodiff" is measured on ``grad`` only. Past the
+`so3jax.simulate` takes no program: "autodiff" is measured on ``grad`` and ``small grad``
+only. Past the
 policy's ``forward_jacobian_max`` differentiated scalars (the quadrotor's 12 gains) the
 engine differentiates with JAX's autodiff anyway.
 
-Each configuration compiles each workload once (timed apart, JAX's caches cleared between
-configurations, `_common.engine_settings`); after a warm-up call the configurations of a
+Each configuration compiles each workload `COMPILE_ROUNDS` times, in alternated rounds (timed
+apart, JAX's caches cleared before each, `_common.engine_settings`), and keeps the fastest
+compilation and, apart, the fastest tracing and lowering (the engine's share of it);
+after a warm-up call the configurations of a
 workload are timed in alternated rounds, one call each per round, the first configuration
 of a round rotating: at least ``--repeats`` rounds (default 3), more (up to 50) until each
 configuration has run for 0.5 s (a call of a few milliseconds on a shared machine needs
@@ -72,8 +77,8 @@ BASE = "all passes"
 
 def sizes(quick: bool) -> dict:
     if quick:
-        return {"run": 20, "batch": (32, 10), "grad": (16, 10), "quadrotor": 20}
-    return {"run": 1000, "batch": (4096, 100), "grad": (256, 200), "quadrotor": 800}
+        return {"run": 20, "batch": (32, 10), "grad": (16, 10), "small": 4, "quadrotor": 20}
+    return {"run": 1000, "batch": (4096, 100), "grad": (256, 200), "small": 8, "quadrotor": 800}
 
 
 def workloads(quick: bool) -> dict:
@@ -109,6 +114,17 @@ def workloads(quick: bool) -> dict:
 
         return jax.grad(cost), jnp.array([8.81, 2.54])
 
+    Bs = n["small"]
+    R0s_small, W0s_small = R0[:Bs], W0[:Bs]
+
+    def small_grad(program):
+        def cost(k):
+            return so3.expected_cost(
+                seed, k[0], k[1], R0s_small, W0s_small, method, 1e-2, steps_g, program=program
+            )
+
+        return jax.grad(cost), jnp.array([8.81, 2.54])
+
     def run_grad(program):
         def cost(k):
             tr = so3.simulate(with_gains(seed, k[0], k[1]), method, 0.01, n["run"])
@@ -127,6 +143,7 @@ def workloads(quick: bool) -> dict:
         "run": (f"one run, {n['run']} steps", run, False),
         "batch": (f"`vmap` of {B} runs, {steps} steps", batch, False),
         "grad": (f"`grad` over {Bg} runs, {steps_g} steps", grad, True),
+        "small grad": (f"`grad` over {Bs} runs, {steps_g} steps", small_grad, True),
         "run grad": (f"`grad`, one run, {n['run']} steps", run_grad, False),
         "quadrotor": (f"quadrotor loss, {steps_q} steps", lambda p: (loss, quad.gains), False),
         "quadrotor grad": (
@@ -145,20 +162,36 @@ def rel_diff(out, ref) -> float:
     return max(float(np.max(np.abs(u - v))) for u, v in zip(a, b, strict=True)) / scale
 
 
-def measure(make, takes_program: bool, configs: list[str], repeats: int, min_s: float):
-    """One workload in every configuration: compiled apart, timed in alternated rounds
-    (at least ``repeats``, and up to 50 until every configuration has run ``min_s``)."""
-    compiled = {}
-    for name in configs:
-        passes, program = CONFIGS[name]
-        if program != "auto" and not takes_program:
-            continue
-        with C.engine_settings(passes=passes):
-            fn, arg = make(program)
-            exe, compile_s, _ = C.compile_fn(fn, arg)
-        out = jax.block_until_ready(exe(arg))  # the warm-up call
-        digest = hashlib.sha1(exe.as_text().encode()).hexdigest()[:12]
-        compiled[name] = (exe, arg, compile_s, digest, out)
+#: Compilations of each workload per configuration, in alternated rounds (JAX's caches
+#: cleared before each): the fastest is reported, with the range. A pass can buy tracing
+#: time alone (``settle``), and one compilation varies by more than the 10 % asked of it.
+COMPILE_ROUNDS = 3
+
+
+def measure(
+    make, takes_program: bool, configs: list[str], repeats: int, min_s: float, compiles: int
+):
+    """One workload in every configuration: compiled apart ``compiles`` times in alternated
+    rounds, timed in alternated rounds (at least ``repeats``, and up to 50 until every
+    configuration has run ``min_s``)."""
+    compiled, compile_times = {}, {}
+    for k in range(compiles):
+        for name in configs:
+            passes, program = CONFIGS[name]
+            if program != "auto" and not takes_program:
+                continue
+            with C.engine_settings(passes=passes):
+                fn, arg = make(program)
+                t = time.perf_counter()
+                lowered = jax.jit(fn).trace(arg).lower()  # the engine's share: tracing
+                traced = time.perf_counter()
+                exe = lowered.compile()
+                done = time.perf_counter()
+            compile_times.setdefault(name, []).append((done - t, traced - t))
+            if k == 0:
+                out = jax.block_until_ready(exe(arg))  # the warm-up call
+                digest = hashlib.sha1(exe.as_text().encode()).hexdigest()[:12]
+                compiled[name] = (exe, arg, digest, out)
     names = list(compiled)
     times = {name: [] for name in names}
     r = 0
@@ -172,8 +205,9 @@ def measure(make, takes_program: bool, configs: list[str], repeats: int, min_s: 
     base = compiled.get(BASE)
     rows = []
     for name in names:
-        _, _, compile_s, digest, out = compiled[name]
+        _, _, digest, out = compiled[name]
         ts = times[name]
+        cs, trs = (list(x) for x in zip(*compile_times[name], strict=True))
         rows.append(
             {
                 "config": name,
@@ -182,10 +216,13 @@ def measure(make, takes_program: bool, configs: list[str], repeats: int, min_s: 
                 "run_s": min(ts),
                 "run_s_range": [min(ts), max(ts)],
                 "rounds": ts,
-                "compile_s": compile_s,
+                "compile_s": min(cs),
+                "compile_s_rounds": cs,
+                "trace_s": min(trs),
+                "trace_s_rounds": trs,
                 "program_hash": digest,
-                "same_program_as_base": None if base is None else digest == base[3],
-                "max_rel_diff": None if base is None else rel_diff(out, base[4]),
+                "same_program_as_base": None if base is None else digest == base[2],
+                "max_rel_diff": None if base is None else rel_diff(out, base[3]),
             }
         )
     return rows
@@ -249,7 +286,8 @@ def main():
     for w in C.progress(names, "ablation"):
         label, make, takes_program = wl[w]
         min_s = 0.0 if args.quick else 0.5
-        for r in measure(make, takes_program, configs, args.repeats, min_s):
+        compiles = 1 if args.quick else COMPILE_ROUNDS
+        for r in measure(make, takes_program, configs, args.repeats, min_s, compiles):
             rows.append({"workload": w, **r})
         C.write_partial(args, "ablation", rows)
     n = sizes(args.quick)
@@ -260,6 +298,7 @@ def main():
         "dtype": "float64",
         "method": "RKMK4",
         "repeats": args.repeats,
+        "compile_rounds": 1 if args.quick else COMPILE_ROUNDS,
         "passes": sorted(policy.PASSES),
         "configs": {
             c: {"passes_off": sorted(policy.PASSES - CONFIGS[c][0]), "program": CONFIGS[c][1]}

@@ -1034,6 +1034,8 @@ def ablation(R: Results) -> str:
     base, wl, configs = "all passes", list(d["workloads"]), list(d["configs"])
     by = {(r["config"], r["workload"]): r for r in d["rows"]}
     ratios: dict[str, dict[str, float]] = {}  # configuration -> workload -> ratio
+    compiles: dict[str, dict[str, float]] = {}  # configuration -> workload -> compile ratio
+    traces: dict[str, dict[str, float]] = {}  # configuration -> workload -> tracing ratio
 
     def cell(c, w):
         r, b = by.get((c, w)), by.get((base, w))
@@ -1042,17 +1044,22 @@ def ablation(R: Results) -> str:
         if c == base:
             lo, hi = _middle_half(r["rounds"])
             k, unit = _unit(hi)
-            return (
+            text = (
                 f"{dur(r['run_s'])} ({sig3(lo * k)}–{sig3(hi * k)} {unit}), "
                 f"compile {dur(r['compile_s'])}"
             )
+            return text + (f" (tracing {dur(r['trace_s'])})" if "trace_s" in r else "")
         ratio = r["run_s"] / b["run_s"]
         # a program the pass leaves as it is: the pass buys nothing there, whatever the noise
         ratios.setdefault(c, {})[w] = 1.0 if r["same_program_as_base"] else ratio
         rounds = [t / u for t, u in zip(r["rounds"], b["rounds"], strict=True)]
         lo, hi = (x(v) for v in _middle_half(rounds))
         text = f"**{x(ratio)}**" + ("" if lo == hi else f" ({lo[:-1]}–{hi})")
-        text += f", compile {x(r['compile_s'] / b['compile_s'])}"
+        compiles.setdefault(c, {})[w] = r["compile_s"] / b["compile_s"]
+        text += f", compile {x(compiles[c][w])}"
+        if "trace_s" in r and "trace_s" in b:
+            traces.setdefault(c, {})[w] = r["trace_s"] / b["trace_s"]
+            text += f" (tracing {x(traces[c][w])})"
         return text + (", same program" if r["same_program_as_base"] else "")
 
     rows = [[c, *(cell(c, w) for w in wl)] for c in configs]
@@ -1063,7 +1070,10 @@ def ablation(R: Results) -> str:
         "pass (in brackets the middle half of the calls) and its compile time; other rows: "
         "the fastest call with a pass off over that, in brackets the middle half of that "
         f"ratio over the rounds (at least {rounds}, the configurations alternated in each), "
-        "and the compile time over that of all passes. *Same program*: XLA compiled the very "
+        "and the fastest compilation over that of all passes (tracing and lowering included; "
+        f"{d.get('compile_rounds', 1)} per configuration, alternated), in brackets the same "
+        "for tracing and lowering alone (the engine's share of it). *Same program*: XLA "
+        "compiled the very "
         'program of all passes (the difference is noise). "none" is every pass off; '
         '"autodiff" also differentiates with JAX alone (`program="autodiff"`, where the API '
         "takes a program)."
@@ -1076,19 +1086,41 @@ def ablation(R: Results) -> str:
     if same:
         text += f" The rows of the same program measure the noise: {x(min(same))[:-1]}"
         text += f"–{x(max(same))}."
+    same_c = [
+        r["compile_s"] / by[(base, r["workload"])]["compile_s"]
+        for r in d["rows"]
+        if r["config"] != base and r["same_program_as_base"] and (base, r["workload"]) in by
+    ]
+    if same_c:
+        text += f" Their compile times, {x(min(same_c))[:-1]}–{x(max(same_c))}, measure the"
+        text += " noise of compilation and the tracing a pass changes without changing the program."
     passes = [p for p in d["passes"] if f"no {p}" in ratios]
     off = {p: ratios[f"no {p}"] for p in passes}
-    cheap = ", ".join(f"`{p}`" for p in passes if max(off[p].values()) < 1.1) or "none"
+    off_c = {p: compiles.get(f"no {p}", {}) for p in passes}
+    off_t = {p: traces.get(f"no {p}", {}) for p in passes}
+    cheap = [
+        p for p in passes if max([*off[p].values(), *off_c[p].values(), *off_t[p].values()]) < 1.1
+    ]
+    cheap = ", ".join(f"`{p}`" for p in cheap) or "none"
     costly = ", ".join(f"`{p}`" for p in passes if min(off[p].values()) < 1 / 1.1)
     text += (
-        " A pass that buys less than 10 % on every workload (each ratio in its row below "
-        "1.10x, a program it leaves unchanged counted as 1.00x) is a candidate for removal: "
-        f"{cheap}."
+        " A pass that buys less than 10 % on every workload, in run time, compile time and "
+        "tracing (each ratio in its row below 1.10x, the run time of a program it leaves "
+        f"unchanged counted as 1.00x), is a candidate for removal: {cheap}."
     )
     if passes:  # the workload where each pass buys the most
         most = [(p, max(off[p], key=off[p].get)) for p in passes]
         said = "; ".join(f"`{p}` {x(off[p][w])} ({d['workloads'][w]['label']})" for p, w in most)
         text += f" Each pass's largest slowdown when off: {said}."
+        most = [(p, max(off_c[p], key=off_c[p].get)) for p in passes if off_c[p]]
+        said = "; ".join(f"`{p}` {x(off_c[p][w])} ({d['workloads'][w]['label']})" for p, w in most)
+        text += f" Each pass's largest compile-time slowdown when off: {said}."
+        most = [(p, max(off_t[p], key=off_t[p].get)) for p in passes if off_t[p]]
+        if most:
+            said = "; ".join(
+                f"`{p}` {x(off_t[p][w])} ({d['workloads'][w]['label']})" for p, w in most
+            )
+            text += f" Each pass's largest slowdown in tracing when off: {said}."
     if costly:
         text += f" Turned off, these make a workload over 10 % faster (below 0.91x): {costly}."
     for fwd, grad, what in (

@@ -17,7 +17,7 @@ each body once:
 - `jacobian_tangents`: the same for the Jacobian program's second derivatives.
 
 The program and its values are unchanged; tracing and lowering are shorter
-(``benchmarks/ablation.py``'s compile times). With the pass off each function returns
+(``benchmarks/ablation.py``'s tracing times). With the pass off each function returns
 its inputs. Each records a ``"settle"`` entry in the plan (`so3jax.explain`) where it
 starts a loop elsewhere than JAX would.
 """
