@@ -1055,11 +1055,20 @@ def ablation(R: Results) -> str:
         rounds = [t / u for t, u in zip(r["rounds"], b["rounds"], strict=True)]
         lo, hi = (x(v) for v in _middle_half(rounds))
         text = f"**{x(ratio)}**" + ("" if lo == hi else f" ({lo[:-1]}–{hi})")
-        compiles.setdefault(c, {})[w] = r["compile_s"] / b["compile_s"]
-        text += f", compile {x(compiles[c][w])}"
+
+        def apart(key):  # the ratio of the fastest, where every round with the pass off
+            # took longer than every round with all passes (else noise: 1.0)
+            rounds, base_rounds = r.get(f"{key}_rounds"), b.get(f"{key}_rounds")
+            ratio = r[key] / b[key]
+            if rounds and base_rounds and min(rounds) <= max(base_rounds):
+                return ratio, 1.0
+            return ratio, ratio
+
+        ratio_c, compiles.setdefault(c, {})[w] = apart("compile_s")
+        text += f", compile {x(ratio_c)}"
         if "trace_s" in r and "trace_s" in b:
-            traces.setdefault(c, {})[w] = r["trace_s"] / b["trace_s"]
-            text += f" (tracing {x(traces[c][w])})"
+            ratio_t, traces.setdefault(c, {})[w] = apart("trace_s")
+            text += f" (tracing {x(ratio_t)})"
         return text + (", same program" if r["same_program_as_base"] else "")
 
     rows = [[c, *(cell(c, w) for w in wl)] for c in configs]
@@ -1106,21 +1115,23 @@ def ablation(R: Results) -> str:
     text += (
         " A pass that buys less than 10 % on every workload, in run time, compile time and "
         "tracing (each ratio in its row below 1.10x, the run time of a program it leaves "
-        f"unchanged counted as 1.00x), is a candidate for removal: {cheap}."
+        "unchanged counted as 1.00x, and a compile or tracing time only where every round "
+        "with the pass off took longer than every round with all passes), is a candidate for "
+        f"removal: {cheap}."
     )
     if passes:  # the workload where each pass buys the most
         most = [(p, max(off[p], key=off[p].get)) for p in passes]
         said = "; ".join(f"`{p}` {x(off[p][w])} ({d['workloads'][w]['label']})" for p, w in most)
         text += f" Each pass's largest slowdown when off: {said}."
-        most = [(p, max(off_c[p], key=off_c[p].get)) for p in passes if off_c[p]]
-        said = "; ".join(f"`{p}` {x(off_c[p][w])} ({d['workloads'][w]['label']})" for p, w in most)
-        text += f" Each pass's largest compile-time slowdown when off: {said}."
-        most = [(p, max(off_t[p], key=off_t[p].get)) for p in passes if off_t[p]]
-        if most:
+        for kind, by_pass in (("compile time", off_c), ("tracing", off_t)):
+            # (gains apart from the rounds' noise only)
+            most = [(p, max(by_pass[p], key=by_pass[p].get)) for p in passes if by_pass[p]]
             said = "; ".join(
-                f"`{p}` {x(off_t[p][w])} ({d['workloads'][w]['label']})" for p, w in most
+                f"`{p}` {x(by_pass[p][w])} ({d['workloads'][w]['label']})"
+                for p, w in most
+                if by_pass[p][w] > 1.0
             )
-            text += f" Each pass's largest slowdown in tracing when off: {said}."
+            text += f" Slower to compile with a pass off ({kind}): {said or 'none'}."
     if costly:
         text += f" Turned off, these make a workload over 10 % faster (below 0.91x): {costly}."
     for fwd, grad, what in (
