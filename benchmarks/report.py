@@ -1087,19 +1087,18 @@ def ablation(R: Results) -> str:
         '"autodiff" also differentiates with JAX alone (`program="autodiff"`, where the API '
         "takes a program)."
     )
-    same = [
-        r["run_s"] / by[(base, r["workload"])]["run_s"]
-        for r in d["rows"]
-        if r["config"] != base and r["same_program_as_base"] and (base, r["workload"]) in by
-    ]
+
+    def same_program(key):  # ``key``'s ratios over the rows whose program is all passes'
+        return [
+            r[key] / by[(base, r["workload"])][key]
+            for r in d["rows"]
+            if r["config"] != base and r["same_program_as_base"] and (base, r["workload"]) in by
+        ]
+
+    same, same_c = same_program("run_s"), same_program("compile_s")
     if same:
         text += f" The rows of the same program measure the noise: {x(min(same))[:-1]}"
         text += f"–{x(max(same))}."
-    same_c = [
-        r["compile_s"] / by[(base, r["workload"])]["compile_s"]
-        for r in d["rows"]
-        if r["config"] != base and r["same_program_as_base"] and (base, r["workload"]) in by
-    ]
     if same_c:
         text += f" Their compile times, {x(min(same_c))[:-1]}–{x(max(same_c))}, measure the"
         text += " noise of compilation and the tracing a pass changes without changing the program."

@@ -61,10 +61,10 @@ jax.config.update("jax_enable_x64", True)
 
 #: Python's cyclic garbage collector runs less often than by default (the youngest
 #: generation after 700 net allocations, the middle one every 10th time, the oldest every
-#: 100th): tracing allocates many short-lived objects, and a
-#: collection of the oldest generation walks the whole heap of traced and compiled
-#: programs that the suite's caches keep, several times a test. Each worker sets this
-#: for itself; the library never does (a user's process keeps Python's defaults).
+#: 100th): tracing allocates many short-lived objects, and a collection of the oldest
+#: generation walks the whole heap of traced and compiled programs that the suite's
+#: caches keep, several times a test. Each worker sets this for itself; the library never
+#: does (a user's process keeps Python's defaults).
 gc.set_threshold(20000, 20, 50)
 
 #: Modules by their share of the suite's time (seconds summed over their tests on the 2-core
