@@ -12,6 +12,8 @@ program, "autodiff" (every pass off and ``program="autodiff"``: the checkpointed
   100 steps, the final state saved;
 - ``grad``: `jax.grad` of `so3jax.expected_cost` over 256 starts with respect to
   ``(k_R, k_Omega)``, 200 steps;
+- ``large grad``: the same over 1024 starts, where a batch of Jacobian programs runs in
+  cache-sized tiles (the ``tiles`` pass; over 256 starts it runs two);
 - ``small grad``: the same over 8 starts, a batch below the scalarized layout's
   threshold: the array program, vmapped (where the ``settle`` pass acts);
 - ``run grad``: `jax.grad` of one run's cost, the sum of ``|Omega|^2`` over the 1000 saved
@@ -45,11 +47,17 @@ configuration over that of "all passes" (log scale; pale where the program is th
 
     python benchmarks/ablation.py            # the sizes above: several minutes
     python benchmarks/ablation.py --quick    # smoke run: a 20-step run, "all passes" and "none"
+    python benchmarks/ablation.py --workloads "large grad" --merge  # one workload again
+
+``--merge`` measures the workloads named and replaces their rows in the existing results
+(every ratio is within one workload; ``merged`` gives the environment of each workload
+measured apart).
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import time
 
@@ -77,8 +85,22 @@ BASE = "all passes"
 
 def sizes(quick: bool) -> dict:
     if quick:
-        return {"run": 20, "batch": (32, 10), "grad": (16, 10), "small": 4, "quadrotor": 20}
-    return {"run": 1000, "batch": (4096, 100), "grad": (256, 200), "small": 8, "quadrotor": 800}
+        return {
+            "run": 20,
+            "batch": (32, 10),
+            "grad": (16, 10),
+            "large": (32, 10),
+            "small": 4,
+            "quadrotor": 20,
+        }
+    return {
+        "run": 1000,
+        "batch": (4096, 100),
+        "grad": (256, 200),
+        "large": (1024, 200),
+        "small": 8,
+        "quadrotor": 800,
+    }
 
 
 def workloads(quick: bool) -> dict:
@@ -106,24 +128,20 @@ def workloads(quick: bool) -> dict:
     Bg, steps_g = n["grad"]
     R0, W0 = so3.initial_states(jax.random.key(1), Bg)
 
-    def grad(program):
-        def cost(k):
-            return so3.expected_cost(
-                seed, k[0], k[1], R0, W0, method, 1e-2, steps_g, program=program
-            )
+    def mean_grad(R0, W0):
+        def make(program):
+            def cost(k):
+                return so3.expected_cost(
+                    seed, k[0], k[1], R0, W0, method, 1e-2, steps_g, program=program
+                )
 
-        return jax.grad(cost), jnp.array([8.81, 2.54])
+            return jax.grad(cost), jnp.array([8.81, 2.54])
 
-    Bs = n["small"]
-    R0s_small, W0s_small = R0[:Bs], W0[:Bs]
+        return make
 
-    def small_grad(program):
-        def cost(k):
-            return so3.expected_cost(
-                seed, k[0], k[1], R0s_small, W0s_small, method, 1e-2, steps_g, program=program
-            )
-
-        return jax.grad(cost), jnp.array([8.81, 2.54])
+    Bl, Bs = n["large"][0], n["small"]
+    grad, small_grad = mean_grad(R0, W0), mean_grad(R0[:Bs], W0[:Bs])
+    large_grad = mean_grad(*so3.initial_states(jax.random.key(1), Bl))
 
     def run_grad(program):
         def cost(k):
@@ -143,6 +161,7 @@ def workloads(quick: bool) -> dict:
         "run": (f"one run, {n['run']} steps", run, False),
         "batch": (f"`vmap` of {B} runs, {steps} steps", batch, False),
         "grad": (f"`grad` over {Bg} runs, {steps_g} steps", grad, True),
+        "large grad": (f"`grad` over {Bl} runs, {steps_g} steps", large_grad, False),
         "small grad": (f"`grad` over {Bs} runs, {steps_g} steps", small_grad, True),
         "run grad": (f"`grad`, one run, {n['run']} steps", run_grad, False),
         "quadrotor": (f"quadrotor loss, {steps_q} steps", lambda p: (loss, quad.gains), False),
@@ -267,11 +286,32 @@ def figure(data: dict):
     return fig
 
 
+def merged(path, new: dict) -> dict:
+    """The results at ``path`` with ``new``'s workloads measured again (their rows
+    replaced), in the existing workloads' order, new ones last."""
+    old = json.loads(path.read_text())
+    if old["configs"] != new["configs"] or old["quick"] != new["quick"]:
+        raise ValueError(f"--merge: {path} has other configurations; run every workload")
+    ours = set(new["workloads"])
+    out = dict(old)
+    out["workloads"] = {**old["workloads"], **new["workloads"]}
+    out["rows"] = [r for r in old["rows"] if r["workload"] not in ours] + new["rows"]
+    out["merged"] = {**old.get("merged", {}), **dict.fromkeys(ours, new["env"])}
+    order = list(out["workloads"])
+    out["rows"].sort(key=lambda r: order.index(r["workload"]))
+    return out
+
+
 def main():
     def extra(p):
         p.set_defaults(repeats=3)
         p.add_argument("--configs", nargs="+", choices=list(CONFIGS), help="default: all")
         p.add_argument("--workloads", nargs="+", help="default: all (--quick: run)")
+        p.add_argument(
+            "--merge",
+            action="store_true",
+            help="replace these workloads' rows in the existing results, keep the others",
+        )
 
     args = C.parse_args(__doc__.splitlines()[0], extra)
     wl = workloads(args.quick)
@@ -331,6 +371,8 @@ def main():
         title="time with each pass off, over the time with all passes",
     )
     json_path, png_path = C.output_paths(args, "ablation")
+    if args.merge:
+        data = merged(json_path, data)
     C.write_json(json_path, data)
     C.save_figure(figure(data), png_path)
 

@@ -1142,6 +1142,9 @@ def ablation(R: Results) -> str:
         if pairs:
             said = ", ".join(f"{x(g['run_s'] / f['run_s'])} with {c}" for c, g, f in pairs)
             text += f" {what} over its forward pass: {said}."
+    apart = [d["workloads"][w]["label"] for w in d.get("merged", {}) if w in d["workloads"]]
+    if apart:  # (`ablation.py --merge`: every ratio is within one workload's run)
+        text += f" Measured in a run of their own, on the same machine: {', '.join(apart)}."
     lines += ["", f"{text} {sources(['ablation.json'])}"]
     return "\n".join(lines) + "\n"
 

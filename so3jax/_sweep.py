@@ -131,6 +131,8 @@ class SweepResult:
       ``rms_position_error``, ``min_thrust_axis_up``; NaN where a run failed).
     - `position_threshold`: a quadrotor sweep's settling threshold on ``|e_x|``
       (m); ``None`` for an attitude scene.
+    - `scalarize`: the program each chunk was asked to run, scalarized (``True``) or
+      the array program: the caller's ``scalarize``, or the platform's choice.
 
     For a quadrotor, ``Psi``, ``e_Omega`` and the settling test are taken against
     the commanded attitude ``Rc``, and settling also needs ``|e_x| <
@@ -159,6 +161,7 @@ class SweepResult:
     params: dict = dataclasses.field(default_factory=dict)
     metrics: dict = dataclasses.field(default_factory=dict)
     position_threshold: float | None = None
+    scalarize: bool = False
 
     @property
     def diverged(self) -> np.ndarray:
@@ -496,6 +499,7 @@ class SweepResult:
             d[name] = float(d[name])
         for name in ("n_steps", "save_every", "refine"):
             d[name] = int(d[name])
+        d["scalarize"] = bool(d.get("scalarize", False))
         return cls(
             grid_shape=None if gs == (-1, -1) else gs,
             params=params,
@@ -1095,6 +1099,7 @@ def sweep(
         params=col_params,
         metrics=metrics,
         position_threshold=position_threshold,
+        scalarize=bool(scalarize),
         **runs,
     )
 

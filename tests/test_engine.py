@@ -412,34 +412,39 @@ def test_second_derivatives_start_settled_carry_tangents():
         assert _rel(H, ref) < 1e-12
 
 
-def test_reverse_over_reverse_transposes_by_columns(monkeypatch):
+def test_reverse_over_reverse_transposes_by_columns():
     """``jacrev`` of ``jacrev`` transposes the second derivative's ``linear_call``
     (`_engine.tangents._linear_tangent`). Through at most 8 scalars its transpose runs the
     fast program once per unit tangent (`_transpose_by_columns`: scalarized over a batch
-    of 40 here), through more JAX's transpose of the array program (10 scalars: a
-    gradient through 2 of them, differentiated through all). Both equal autodiff."""
-    used, by_columns = [], _engine.tangents._transpose_by_columns
-    monkeypatch.setattr(
-        _engine.tangents, "_transpose_by_columns", lambda *a: used.append(1) or by_columns(*a)
-    )
+    of 40 here). Through more (10 scalars: a gradient through 2 of them, differentiated
+    through all) the run's derivative is the discrete adjoint, whose own derivative is
+    JAX's, and nothing is transposed by columns. The plan says which; both equal
+    autodiff."""
     ps = jnp.linspace(0.8, 1.2, 40)[:, None]
 
     def mean(program, P):
         return jnp.mean(jax.vmap(lambda s: _toy_second(P * s, program, True))(ps))
 
+    def transposes(fn, x):
+        return [(e["by"], e["scalars"]) for e in s.explain(fn, x).of("transpose")]
+
     p2 = jnp.array([1.3, 0.7])
     ref = jax.jacrev(jax.jacrev(lambda P: mean("autodiff", P)))(p2)
-    got = jax.jacrev(jax.jacrev(lambda P: mean("auto", P)))(p2)
-    assert used and _rel(got, ref) < 1e-12
-    used.clear()
+    hessian = jax.jacrev(jax.jacrev(lambda P: mean("auto", P)))
+    assert set(transposes(hessian, p2)) == {("columns", 2)}
+    assert _rel(hessian(p2), ref) < 1e-12
 
     def grad_of_two(program):
         return lambda P: jax.grad(lambda a: mean(program, jnp.concatenate([a, P[2:]])))(P[:2])
 
     p10 = jnp.linspace(1.3, 0.7, 10)
     ref = jax.jacrev(grad_of_two("autodiff"))(p10)
+    plan = s.explain(jax.jacrev(grad_of_two("auto")), p10)
+    strategies = {e["strategy"] for e in plan.of("derivative")}
+    assert {"checkpointed jvp, discrete adjoint", "second derivative"} <= strategies, plan
+    assert not [e for e in plan.of("transpose") if e["by"] == "columns"], plan
     got = jax.jacrev(grad_of_two("auto"))(p10)
-    assert not used and np.abs(ref[:, 2:]).max() > 0 and _rel(got, ref) < 1e-12
+    assert np.abs(ref[:, 2:]).max() > 0 and _rel(got, ref) < 1e-12
 
 
 def test_linear_call_under_a_vmap_it_does_not_depend_on():
@@ -465,26 +470,25 @@ def test_adjoint_program_second_derivatives():
     assert np.abs(H).min() > 0 and _rel(jax.hessian(f)(p), H) < 1e-10
 
 
-def test_batched_programs_are_traced_once(monkeypatch):
+def test_batched_programs_are_traced_once():
     """Under ``vmap`` the array programs are traced once per call: the ``custom_vmap`` and
     its batching rule share one jaxpr (`_engine.layout._dual`), rather than the rule tracing it
-    again under its ``vmap``: batching the first trace's jaxpr is cheaper."""
-    traced = {"fwd_array": 0, "jac_array": 0}
-    for name in traced:
-        original = getattr(_engine.programs.Programs, name)
-
-        def spy(self, *args, _original=original, _name=name):
-            traced[_name] += 1
-            return _original(self, *args)
-
-        monkeypatch.setattr(_engine.programs.Programs, name, spy)
+    again under its ``vmap``: batching the first trace's jaxpr is cheaper. The plan's
+    ``"traced"`` entries count the traces."""
     ps = jnp.array([1.7, -0.4, 2.5])  # fewer runs than the scalarized program takes
-    # A jitted run, as `simulate` and `expected_cost` are: its forward program is traced
-    # (batched) before ``grad`` linearizes it.
-    one = jax.jit(lambda p: _toy(p, "auto"))
-    mean = lambda ps: jnp.mean(jax.vmap(one)(ps))  # noqa: E731
-    grads = jax.jit(jax.grad(mean))(ps)
-    assert traced == {"fwd_array": 1, "jac_array": 1}
+
+    def mean_of_jitted_runs(ps):
+        # A jitted run, as `simulate` and `expected_cost` are: its forward program is
+        # traced (batched) before ``grad`` linearizes it.
+        one = jax.jit(lambda p: _toy(p, "auto"))
+        return jnp.mean(jax.vmap(one)(ps))
+
+    plan = s.explain(jax.grad(mean_of_jitted_runs), ps)
+    traced = [e["program"] for e in plan.of("traced")]
+    assert sorted(traced) == ["jacobian", "run"], plan
+    batched = {(e["program"], e["layout"]) for e in plan.of("layout") if e["runs"] == 3}
+    assert batched == {("run", "array"), ("jacobian", "array")}, plan
+    grads = jax.jit(jax.grad(mean_of_jitted_runs))(ps)
     loop = np.stack([jax.grad(_toy)(p, "autodiff") for p in ps]) / 3
     assert _rel(grads, loop) < 1e-12
 
@@ -658,7 +662,8 @@ def test_scalarized_jacobian_program_for_large_batches():
     """32 starts or more: the Jacobian program runs scalarized (fusion cuts included).
     With two gains the default reverse mode takes the Jacobian's columns from it, and
     equals JAX's autodiff; so does ``jacfwd``. The columns are the outer axis of every
-    tangent component, ``(2, B)`` arrays, not ``(B, 2)`` (`_engine.layout._columns_outside`)."""
+    tangent component, ``(2, B)`` arrays, not ``(B, 2)``
+    (`_engine.passes.scalarized.columns_outside`)."""
     B = _engine.policy.batched_layout("jacobian")[1]
     for save_every in (1, 2):  # the integral summed in the carry; saved points
         cost = _seed_mean_cost(jax.random.PRNGKey(3), B, N, save_every)
@@ -947,7 +952,8 @@ def test_gpu_layout_table(monkeypatch):
 
 def test_sweep_program_default_per_platform(monkeypatch):
     """`sweep` leaves its program to the engine unless told: scalarized on a CPU, the
-    array program on a GPU (`_engine.policy.Policy.sweep_scalarize`); a forced choice is kept."""
+    array program on a GPU (`_engine.policy.Policy.sweep_scalarize`); a forced choice is
+    kept. `SweepResult.scalarize` says which ran; the results agree to round-off."""
     from so3jax import _sweep
 
     class FakeGPU:
@@ -955,20 +961,14 @@ def test_sweep_program_default_per_platform(monkeypatch):
 
     assert _engine.policy.sweep_scalarize(jax.devices("cpu")) is True
     assert _engine.policy.sweep_scalarize([FakeGPU()]) is False
-    seen, run_chunk = [], _sweep._run_chunk
-
-    def recorded(*args):
-        seen[-1].add(args[-1])  # the chunk's scalarize flag
-        return run_chunk(*args)
-
-    monkeypatch.setattr(_sweep, "_run_chunk", recorded)
-    kw = dict(n_attitudes=1, dt=1e-3, n_steps=20, method=s.LieEuler(), progress=False)
+    kw = dict(n_attitudes=3, dt=1e-3, n_steps=20, method=s.LieEuler(), progress=False)
     # (the platform's choice, the caller's): False as on a GPU, True as on a CPU
+    ran = []
     for choice, forced in ((False, None), (True, None), (False, True)):
         monkeypatch.setattr(_sweep, "sweep_scalarize", lambda devices, c=choice: c)
-        seen.append(set())
-        s.sweep(s.scenes.seed(), [2.0], [1.0], scalarize=forced, **kw)
-    assert seen == [{False}, {True}, {True}]
+        ran.append(s.sweep(s.scenes.seed(), [2.0], [1.0], scalarize=forced, **kw))
+    assert [r.scalarize for r in ran] == [False, True, True]
+    assert _rel(ran[1].final_psi, ran[0].final_psi) < 1e-12
 
 
 def test_sweep_chunk_default_per_platform():

@@ -163,6 +163,7 @@ def test_interrupted_sweep_resumes_and_loses_nothing(scene, base, tmp_path):
     loaded = s.SweepResult.load(tmp_path / "r.npz")
     assert_same(base, loaded)
     assert loaded.grid_shape == base.grid_shape and loaded.n_steps == base.n_steps
+    assert loaded.scalarize == base.scalarize
 
 
 _SHARDED = textwrap.dedent(

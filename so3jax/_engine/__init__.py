@@ -18,8 +18,9 @@ How to read it, smallest first:
 - `so3jax._engine.passes`: the optimisations, one module each (scalarize, cuts, frames,
   hoist, unroll, tiles), each proving its equality with the reference in
   ``tests/passes/`` and measured by ``benchmarks/ablation.py``.
-- `so3jax._engine.programs`: the programs the passes and strategies build (scalarized
-  forward, tangent, Jacobian and adjoint programs of one loop).
+- `so3jax._engine.programs`: the derivative programs the strategies build (the Jacobian
+  and adjoint programs of one loop); their scalarized layout is the pass's
+  (`so3jax._engine.passes.scalarized`).
 - `so3jax._engine._jax`: every JAX internal touched, behind a version gate: on a JAX
   release outside it, every run takes the reference path and warns once.
 
@@ -29,14 +30,16 @@ The design and its measurements: ``docs/engine.md`` and ``docs/performance.md``.
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import jax
 
 from . import _jax, derivatives, plan as _plan, policy
 from .layout import _dual
 from .loop import checkpoint_length
+from .passes import scalarized
 from .plan import Plan, explain
-from .programs import Programs, _scalar_or_array
+from .programs import Programs
 
 __all__ = ["run", "explain", "Plan", "checkpoint_length", "policy", "derivatives"]
 
@@ -103,7 +106,7 @@ def run(
     if program == "array":  # batched by `_dual` too, so every output is (`_batched_with`)
         fwd = _dual(loop.fwd_array, loop.fwd_array, "array")
     elif program == "scalar":
-        fwd = _dual(_scalar_or_array(loop), loop.fwd_scalar, "scalar")
+        fwd = _dual(scalarized.or_array(loop), partial(scalarized.forward, loop), "scalar")
     else:
-        fwd = _dual(loop.fwd_array, loop.fwd_scalar, "run")
+        fwd = _dual(loop.fwd_array, partial(scalarized.forward, loop), "run")
     return derivatives.differentiated(loop, fwd, program)(P, carry0)

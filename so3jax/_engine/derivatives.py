@@ -42,7 +42,7 @@ from . import plan as _plan
 from .layout import _dual
 from .linear_call import linear_call
 from .masks import _tangent_masks
-from .passes import settle
+from .passes import scalarized, settle
 from .passes.frames import OBS_DENSE, OBS_LEFT, OBS_ZERO, _frame_dense, _with_frames
 from .policy import current
 from .programs import Programs
@@ -300,7 +300,7 @@ def _jacobian_jvp(loop: Programs, P, c0, nz: list, lin: list, mP: tuple, mc: tup
     dP, dc = _masked_tangents(nz, cols, mP, mc, pf, cf, (n,))
     jac = _dual(
         functools.partial(loop.jac_array, mP, mc, mo),
-        functools.partial(loop.jac_scalar, mP, mc, mo),
+        functools.partial(scalarized.jacobian, loop, mP, mc, mo),
         "jacobian",
         settle=functools.partial(settle.jacobian_tangents, loop, mP, mc),
     )

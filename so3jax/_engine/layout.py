@@ -21,7 +21,7 @@ from jax.custom_batching import custom_vmap
 from jax.extend import core as jex_core
 
 from . import plan as _plan
-from .passes import scalarize as sc, settle as settle_pass
+from .passes import scalarize as sc, scalarized, settle as settle_pass
 from .passes.cuts import cut_index
 from .passes.hoist import _hoisted, _tracing
 from .passes.tiles import _in_tiles, batch_tiles
@@ -50,7 +50,7 @@ def _dual(
 
     ``settle``: how the derivative rule (`_dual_jvp`) starts the carry tangents of the
     programs' loops (``None``: as JAX finds them). ``columns``: for the ``jvp`` of a
-    Jacobian program, where its columns are (`_columns_outside`).
+    Jacobian program, where its columns are (`scalarized.columns_outside`).
 
     ``scalar_fn`` raises `ScalarizeError` at trace time for an unsupported
     primitive (a loop, dynamic indexing, `jax.checkpoint` inside the step); the
@@ -83,6 +83,8 @@ def _dual(
       lower and to compile). A ``custom_jvp`` call whose inputs are all known is
       bound whole (``JaxprTrace.process_custom_jvp_call``).
     """
+
+    array_fn = _plan.traced(array_fn, what)
 
     @jax.custom_jvp
     def call(*args):
@@ -139,7 +141,7 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     plain = _float_tangent(array_fn, treedef, nz, out_nz)
     columns = None
     if what == "jacobian":  # its columns outside the runs in the jvp program too
-        in_cols, out_cols = _jacobian_columns(primals, jax.tree.structure(out))
+        in_cols, out_cols = scalarized.jacobian_columns(primals, jax.tree.structure(out))
         # the jvp program's arguments are (xs, ts, others): the differentiated leaves,
         # their tangents (shaped alike), and every leaf
         xs_cols = _pick(nz, in_cols)
@@ -229,7 +231,7 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
     def _rule(axis_size, in_batched, *args):
         columns, observed = 0, 1
         if what == "jacobian":
-            columns = _column_count(args, in_batched, array_fn.out_tree)
+            columns = scalarized.column_count(args, in_batched, array_fn.out_tree)
             ys = array_fn.closed.out_avals[: array_fn.out_tree.children()[0].num_leaves]
             observed = sum(math.prod(y.shape[1:]) for y in ys)
         n, size = batch_tiles(what, axis_size, columns, observed)
@@ -269,8 +271,13 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
                     return jax.vmap(cut, in_axes=(0, *axes))(one, *args)
                 return jax.vmap(functools.partial(scalar_fn, cut=index), in_axes=axes)(*args)
 
-            cols = _jacobian_columns(args, array_fn.out_tree) if what == "jacobian" else columns
-            out = runs(*args) if cols is None else _columns_outside(runs, args, in_batched, *cols)
+            cols = columns
+            if what == "jacobian":
+                cols = scalarized.jacobian_columns(args, array_fn.out_tree)
+            if cols is not None:
+                out = scalarized.columns_outside(runs, args, in_batched, *cols)
+            else:
+                out = runs(*args)
             _plan.note("layout", program=what, runs=axis_size, layout="scalarized", cuts=cuts)
         except sc.ScalarizeError as e:
             _plan.note(
@@ -284,59 +291,3 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
         return out, jax.tree.map(lambda _: True, out)
 
     return fn
-
-
-def _columns_outside(runs: Callable, args, in_batched, in_cols: list, out_cols: list):
-    """``runs(*args)`` (a batch of scalarized Jacobian programs, or their ``jvp``) with
-    the column axis of the Jacobian's tangents outside the runs' axis.
-
-    ``in_cols`` gives, per leaf of ``args``, the axis of the columns in one run's
-    leaf (``None``: the leaf has none); ``out_cols`` the same per leaf of the output.
-
-    Under ``runs`` alone the Jacobian program's columns are a ``vmap`` inside the
-    runs' ``vmap``, so every tangent component is a ``(B, n)`` array whose columns
-    are its minor axis: each operation between a primal ``(B,)`` and a tangent
-    broadcasts the primal across that axis of 2 (two gains), an inner loop XLA's CPU
-    code does not vectorise well. Here one column at a time runs under ``runs``, and
-    the columns are a ``vmap`` around it: tangent components are ``(n, B)``, the
-    primal stays ``(B,)`` and is computed once (it does not depend on the tangents).
-    """
-    leaves, treedef = jax.tree.flatten(args)
-    flags = jax.tree.leaves(in_batched)
-    axes = [None if c is None else c + int(b) for c, b in zip(in_cols, flags, strict=True)]
-    out_tree = []
-
-    def column(*cols):
-        it = iter(cols)
-        pairs = zip(leaves, axes, strict=True)
-        one = [x if a is None else jnp.expand_dims(next(it), a) for x, a in pairs]
-        outs, tree = jax.tree.flatten(runs(*jax.tree.unflatten(treedef, one)))
-        out_tree.append(tree)
-        # every output is batched over the runs (axis 0), so a run's axis c is c + 1
-        pairs = zip(outs, out_cols, strict=True)
-        return [o if c is None else jnp.squeeze(o, c + 1) for o, c in pairs]
-
-    outs = jax.vmap(
-        column,
-        in_axes=tuple(a for a in axes if a is not None),
-        out_axes=[None if c is None else c + 1 for c in out_cols],
-    )(*[x for x, a in zip(leaves, axes, strict=True) if a is not None])
-    return jax.tree.unflatten(out_tree[0], outs)
-
-
-def _column_count(args, in_batched, out_tree) -> int:
-    """The number of tangent columns of a batched call of the Jacobian program."""
-    in_cols, _ = _jacobian_columns(args, out_tree)
-    pairs = zip(jax.tree.leaves(args), jax.tree.leaves(in_batched), in_cols, strict=True)
-    return next((jnp.shape(x)[c + int(b)] for x, b, c in pairs if c is not None), 0)
-
-
-def _jacobian_columns(args, out_tree) -> tuple[list, list]:
-    """`_columns_outside`'s ``in_cols`` and ``out_cols`` for the Jacobian program:
-    ``(P, c0, dP, dc) -> (ys, cN, dys, dcN)``, one run's columns on axis 0 of ``dP`` and
-    ``dc``, axis 1 of ``dys`` (after the saved points) and axis 0 of ``dcN``."""
-    n_in = [len(jax.tree.leaves(a)) for a in args]
-    n_out = [t.num_leaves for t in out_tree.children()]
-    in_cols = [None] * (n_in[0] + n_in[1]) + [0] * (n_in[2] + n_in[3])
-    out_cols = [None] * (n_out[0] + n_out[1]) + [1] * n_out[2] + [0] * n_out[3]
-    return in_cols, out_cols

@@ -25,6 +25,8 @@ import jax
 from . import policy
 
 _RECORDER: contextvars.ContextVar[list | None] = contextvars.ContextVar("so3jax_plan", default=None)
+#: `explain`'s own list: `traced` records there past any `deferred` block.
+_ROOT: contextvars.ContextVar[list | None] = contextvars.ContextVar("so3jax_root", default=None)
 
 
 def count() -> int:
@@ -67,6 +69,24 @@ def note(kind: str, **details) -> None:
     entries = _RECORDER.get()
     if entries is not None:
         entries.append({"kind": kind, **details})
+
+
+def traced(fn: Callable, program: str) -> Callable:
+    """``fn`` recording a ``"traced"`` entry each time it runs, that is each time JAX
+    traces it, also inside a `deferred` block whose decisions are dropped: a trace costs
+    its time whether its decisions are kept or not. Wrapping twice records once."""
+    if getattr(fn, "_plan_program", None) == program:
+        return fn
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        entries = _ROOT.get()
+        if entries is not None:
+            entries.append({"kind": "traced", "program": program})
+        return fn(*args, **kwargs)
+
+    call._plan_program = program
+    return call
 
 
 def jit(fn: Callable) -> Callable:
@@ -112,6 +132,13 @@ class Plan:
           whether the tangent program carries its tangent, ``False`` for a leaf no
           differentiated input reaches, such as the reference attitude under the
           gains); the strategies are `so3jax._engine.derivatives`' objects;
+        - ``"traced"``: the array program of ``program`` traced by JAX (the engine traces
+          each program once per call and batches that trace; every further entry is
+          tracing time spent again);
+        - ``"transpose"``: how a second derivative's tangent program is transposed
+          (reverse over reverse): ``by="columns"``, the program run once per unit
+          tangent through at most the policy's ``forward_jacobian_max`` ``scalars``,
+          or ``by="array program"``, JAX's transpose of the array program;
         - ``"tiles"``: a batch run in ``n`` tiles of ``size`` runs, one after the other;
         - ``"settle"``: a loop started where JAX's fixed point over its carry ends
           (``what``: ``"batched carry"`` with the ``components`` batched before the
@@ -164,9 +191,10 @@ def explain(fn: Callable, *args, **kwargs) -> Plan:
         print(plan)   # derivative: strategy='one-pass Jacobian', scalars=2, ...
     """
     entries: list = []
-    token = _RECORDER.set(entries)
+    token, root = _RECORDER.set(entries), _ROOT.set(entries)
     try:
         jax.make_jaxpr(lambda *a: fn(*a, **kwargs))(*args)
     finally:
         _RECORDER.reset(token)
+        _ROOT.reset(root)
     return Plan(entries, tuple(sorted(policy.current().passes)))

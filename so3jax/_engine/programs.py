@@ -1,10 +1,10 @@
-"""The engine's programs of one loop beyond the reference: both layouts, and derivatives.
+"""The engine's derivative programs of one loop, in the array layout.
 
 `Programs` extends the reference `so3jax._engine.loop.Loop` with:
 
-- the scalarized forward program (`fwd_scalar`, the ``"scalarize"`` pass's layout);
-- the Jacobian programs (the primal once and ``n`` unit tangents batched over it, with
-  attitude tangents as three numbers in the scalarized layout: the ``"frames"`` pass);
+- the Jacobian program (the primal once and ``n`` unit tangents batched over it; its
+  scalarized layout, with attitude tangents as three numbers, is the ``"scalarize"``
+  pass's, `so3jax._engine.passes.scalarized`);
 - the discrete adjoint (a backward scan over checkpointed segments of ``jax.vjp`` of a
   segment's steps, through the differentiated leaves alone).
 
@@ -18,58 +18,26 @@ from __future__ import annotations
 
 import functools
 import math
-import warnings
-from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 
-from . import plan as _plan
 from .loop import Loop
 from .masks import _abstract_jaxpr, _mask_eval
-from .passes import scalarize as sc
 from .passes.frames import (
     OBS_ZERO,
-    FrameError,
     _dense_mask,
     _frame_flags,
     _frame_step,
-    _from_frames,
     _jvp_with_frames,
     _obs_kind,
     _obs_tangent,
-    _to_frames,
 )
-from .passes.hoist import _TRACING, _hoisted
-from .policy import current
-from .trees import _component_flags, _fill, _floats, _pick, _with_floats
+from .trees import _fill, _floats, _pick, _with_floats
 
 
 class Programs(Loop):
     """`Loop`'s reference programs with the scalarized layout and the derivative programs."""
-
-    def fwd_scalar(self, P, c0, cut=None, batched=None, one=None):
-        # Tables in ``P`` (`sc.is_table`: a `Gust`'s path) stay whole, closed over: the
-        # scalarized step reads them by ``dynamic_slice`` instead of carrying each entry.
-        leaves, tree = jax.tree.flatten(P)
-        table = [sc.is_table(x) for x in leaves]
-        small = [x for x, t in zip(leaves, table, strict=True) if not t]
-        tables = [x for x, t in zip(leaves, table, strict=True) if t]
-
-        def whole(small):
-            s, t = iter(small), iter(tables)
-            return jax.tree.unflatten(tree, [next(t) if k else next(s) for k in table])
-
-        ex = (small, c0)
-        body, _ = sc.flat_program(lambda pc: (pc[0], self.step(whole(pc[0]), pc[1])), ex, cut)
-        obs, obs_struct = sc.flat_program(lambda pc: self.observe(whole(pc[0]), pc[1]), ex, cut)
-        flat = sc.split(ex)
-        if batched is not None:
-            flags = [b for b, t in zip(jax.tree.leaves(batched[0]), table, strict=True) if not t]
-            flat = sc.settle_batched(body, flat, _component_flags(ex, (flags, batched[1])), one)
-        flat, ys = _hoisted(functools.partial(self._save_loop, body, obs), flat)
-        _, cN = sc.join(flat, jax.eval_shape(lambda: ex))
-        return sc.join(ys, obs_struct, (self.n_save,)), cN
 
     # ---------------- masked tangents ----------------
     #
@@ -196,73 +164,6 @@ class Programs(Loop):
         (P, dP), (c, dc) = Pj, cj
         _, c1, _, dc1 = self._jac_body(mP, _dense_mask(mc), (P, c, dP, dc))
         return c1, dc1
-
-    def jac_scalar(self, mP, mc, mo, P, c0, dP, dc0, cut=None, batched=None, one=None):
-        """`jac_array` as a scalarized program: tangent components are ``(n,)`` arrays.
-
-        The carry leaves flagged `FRAME` in ``mc`` carry their tangents as `Frame`
-        ``xi`` (three numbers a rotation, `so3jax._engine.passes.frames`) inside; in and out
-        they are dense, as `jac_array`'s.
-        """
-        while any(_frame_flags(mc)):
-            try:
-                out = self._jac_scalar(mP, mc, mo, P, c0, dP, dc0, cut, batched, one)
-                _plan.note("frames", rotations=sum(_frame_flags(mc)))
-                return out
-            except FrameError as e:  # those leaves' tangents come out dense: nine numbers
-                at = [i for i, m in enumerate(mc) if m]
-                dense = {at[j] for j in e.indices}
-                mc = tuple(True if i in dense else m for i, m in enumerate(mc))
-        _plan.note("frames", rotations=0)
-        return self._jac_scalar(mP, mc, mo, P, c0, dP, dc0, cut, batched, one)
-
-    def _jac_scalar(self, mP, mc, mo, P, c0, dP, dc0, cut, batched, one):
-        fr = _frame_flags(mc)
-        if any(fr):
-            dc0 = _to_frames(_pick(mc, _floats(c0)), list(dc0), fr)
-        col = jax.tree.map(lambda a: a[0], (dP, dc0))  # one column: the example
-        ex = (P, c0) + col
-        n_primal = len(sc.split((P, c0)))
-        n_tangent = sum(math.prod(jnp.shape(a)) for a in jax.tree.leaves(col))
-        n = jnp.shape(jax.tree.leaves((dP, dc0))[0])[0]
-        # One column here: `_columns_outside` batches the tangents over the columns
-        # around this program, and its cuts count that (`sc._eval_with_cuts`).
-        columns = None
-        if n == 1 and _TRACING.get()[0] >= current().column_cuts_from:
-            columns = [False] * n_primal + [True] * n_tangent
-        body, _ = sc.flat_program(functools.partial(self._tstep, mP, mc), ex, cut, columns=columns)
-        tobs, tobs_struct = sc.flat_program(
-            functools.partial(self._jac_tobs, mP, mc, mo), ex, cut, columns=columns
-        )
-        obs, obs_struct = sc.flat_program(lambda x: self.observe(x[0], x[1]), ex, cut)
-        flat0 = sc.split((P, c0)) + jax.vmap(sc.split)((dP, dc0))
-        if n == 1:  # one column (`_columns_outside`): scalar tangent components
-            vbody = body
-
-            def observe(flat):
-                return obs(flat), jax.tree.map(lambda a: a[None], tobs(flat))
-
-            flat0 = flat0[:n_primal] + [x[0] for x in flat0[n_primal:]]
-        else:
-            axes = [None] * n_primal + [0] * n_tangent
-            vbody = jax.vmap(body, in_axes=(axes,), out_axes=axes)
-            vtobs = jax.vmap(tobs, in_axes=(axes,))
-
-            def observe(flat):
-                return obs(flat), vtobs(flat)
-
-        if batched is not None:  # a column's components: the body's example
-            flags = _component_flags(ex, batched)
-            flat0 = sc.settle_batched(body, flat0, flags, one, [jnp.result_type(x) for x in flat0])
-        flat, (ys, dys) = _hoisted(functools.partial(self._save_loop, vbody, observe), flat0)
-        _, cN = sc.join(flat[:n_primal], jax.eval_shape(lambda: (P, c0)))
-        if n == 1:
-            flat = flat[:n_primal] + [x[None] for x in flat[n_primal:]]
-        _, dcN = sc.join(flat[n_primal:], jax.eval_shape(lambda: col), (n,))
-        if any(fr):
-            dcN = _from_frames(_pick(mc, _floats(cN)), list(dcN), fr)
-        ys = sc.join(ys, obs_struct, (self.n_save,))
-        return ys, cN, sc.join(dys, tobs_struct, (self.n_save, n)), dcN
 
     # ---------------- adjoint (reverse mode) ----------------
 
@@ -399,16 +300,3 @@ def _unpack(packed: list, spec: list) -> list:
         out.append(packed[g][at : at + size].reshape(shape))
         starts[g] = at + size
     return out
-
-
-def _scalar_or_array(loop: Programs) -> Callable:
-    """The scalarized forward program, or the array one (with a warning) if it cannot be."""
-
-    def fwd(P, c0):
-        try:
-            return loop.fwd_scalar(P, c0)
-        except sc.ScalarizeError as e:
-            warnings.warn(f"{e}; running the array program instead", stacklevel=4)
-            return loop.fwd_array(P, c0)
-
-    return fwd

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import linear_call as _linear_call
+from . import linear_call as _linear_call, plan as _plan
 from .linear_call import linear_call
 from .policy import current
 from .trees import (
@@ -102,7 +102,9 @@ def _linear_tangent(
 
     def transpose(res, cts):
         if 0 < n_real <= max_columns:
+            _plan.note("transpose", by="columns", scalars=n_real)
             return _transpose_by_columns(lambda ts: callee(res, ts), cts, shapes, real)
+        _plan.note("transpose", by="array program", scalars=n_real)
         zeros = [jnp.zeros(s.shape, s.dtype) for s in shapes]
         return jax.vjp(lambda ts: plain(res[0], ts, res[1]), zeros)[1](cts)[0]
 

@@ -4,7 +4,8 @@ Every pass is a program transformation that leaves a run's results equal to the
 reference path's (`so3jax._engine.loop`) to round-off, and each is switched by name in
 the active `so3jax._engine.policy.Policy` (``policy.on(name)``):
 
-- `scalarize`: a batch as a structure-of-arrays program of scalar components;
+- `scalarize`: a batch as a structure-of-arrays program of scalar components (the
+  interpreter; `scalarized`: the programs of a loop it builds);
 - `cuts`: fusion cuts where XLA on CPU would recompute shared values;
 - `frames`: attitude tangents as three numbers in the Jacobian programs;
 - `hoist`: each loop one kernel on a CPU;

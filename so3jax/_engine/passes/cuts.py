@@ -178,7 +178,7 @@ def _eval_with_cuts(closed, args, index, cone_limit: int, columns=None):
     that independent values share a cut.
 
     ``columns`` flags the inputs that a `vmap` around the program will batch (a
-    Jacobian's tangent columns, `so3jax._engine.layout._columns_outside`). XLA fuses an
+    Jacobian's tangent columns, `so3jax._engine.passes.scalarized.columns_outside`). XLA fuses an
     unbatched value's cone into each batched consumer and recomputes it for every
     column: the primal part of the seed's Jacobian step, recomputed in the columns'
     fusions, was a fifth of its work. So a value that a batched operation consumes is

@@ -1,7 +1,7 @@
 """Attitude tangents as three numbers: a forward-mode interpreter for the engine.
 
 The engine's Jacobian programs (`so3jax._engine.programs.Programs.jac_array` /
-``jac_scalar``) carry, for every differentiated input, the tangent of each carry leaf.
+``scalarized.jacobian``) carry, for every differentiated input, the tangent of each carry leaf.
 JAX's ``jvp`` gives a rotation ``R`` a tangent of the same shape, nine numbers, although
 every tangent the group updates produce has the form ``dR = R hat(xi)``: three numbers
 in the body frame. Carried as nine, each update pays for a product of ``dR`` with a 3x3
@@ -433,8 +433,9 @@ def _with_frames(mc, c0, nz_c) -> tuple:
     shaped, without an input tangent (it starts at zero, ``R hat(0)`` for any ``R``).
 
     Whether a step keeps it a frame is found when the scalarized Jacobian program is
-    traced (`Programs.jac_scalar`, which falls back to nine numbers for a leaf whose tangent
-    comes out dense, such as LGVI's); the array layout always carries nine.
+    traced (`so3jax._engine.passes.scalarized.jacobian`, which falls back to nine numbers
+    for a leaf whose tangent comes out dense, such as LGVI's); the array layout always
+    carries nine.
     """
     return tuple(
         FRAME
