@@ -43,7 +43,7 @@ from .layout import _dual
 from .linear_call import linear_call
 from .masks import _tangent_masks
 from .passes import scalarized, settle
-from .passes.frames import OBS_DENSE, OBS_LEFT, OBS_ZERO, _frame_dense, _with_frames
+from .passes.frames import OBS_DENSE, OBS_LEFT, OBS_NAMES, OBS_ZERO, _frame_dense, _with_frames
 from .policy import current
 from .programs import Programs
 from .tangents import (
@@ -297,6 +297,7 @@ def _jacobian_jvp(loop: Programs, P, c0, nz: list, lin: list, mP: tuple, mc: tup
     n = len(cols[0])
     mc = _with_frames(mc, c0, nz[len(pf) :])
     mo = loop.obs_kinds(mP, mc, P, c0, elements)
+    _plan.note("observations", saved=tuple(OBS_NAMES[k] for k in mo))
     dP, dc = _masked_tangents(nz, cols, mP, mc, pf, cf, (n,))
     jac = _dual(
         functools.partial(loop.jac_array, mP, mc, mo),

@@ -139,6 +139,11 @@ class Plan:
           (reverse over reverse): ``by="columns"``, the program run once per unit
           tangent through at most the policy's ``forward_jacobian_max`` ``scalars``,
           or ``by="array program"``, JAX's transpose of the array program;
+        - ``"observations"``: what the one-pass Jacobian saves per observation leaf
+          (``saved``, in the order of the leaves): ``"none"`` (no differentiated input
+          reaches it: zeros outside the loop), ``"dense"`` (its full tangent), ``"right
+          frame"`` or ``"left frame"`` (a rotation's tangent as three numbers, ``R
+          hat(xi)`` or ``hat(xi) R``; the ``"frames"`` pass);
         - ``"tiles"``: a batch run in ``n`` tiles of ``size`` runs, one after the other;
         - ``"settle"``: a loop started where JAX's fixed point over its carry ends
           (``what``: ``"batched carry"`` with the ``components`` batched before the

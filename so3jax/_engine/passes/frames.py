@@ -402,6 +402,8 @@ def _frame_step(g, Pm, cm, dP, dc, fr):
 #: computed; zeros outside), a dense one, or a `Frame` ``xi`` (right, left), three numbers
 #: per rotation that `_jacobian_jvp` turns dense after the loop.
 OBS_ZERO, OBS_DENSE, OBS_RIGHT, OBS_LEFT = 0, 1, 2, 3
+#: The kinds as `so3jax.explain`'s plan names them (``"observations"`` entries).
+OBS_NAMES = {OBS_ZERO: "none", OBS_DENSE: "dense", OBS_RIGHT: "right frame", OBS_LEFT: "left frame"}
 
 
 def _obs_kind(x, t) -> int:
