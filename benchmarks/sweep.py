@@ -36,7 +36,7 @@ matplotlib.use("Agg")
 import _common as C  # noqa: E402
 
 import so3jax as so3  # noqa: E402
-from so3jax import _engine, _plot_sweep  # noqa: E402
+from so3jax import _plot_sweep, _sweep  # noqa: E402
 from so3jax._integrators import METHODS, method_by_name  # noqa: E402
 
 
@@ -62,7 +62,7 @@ def run(
         scalarize=scalarize,
     )
     if chunk is None:  # sweep's own default for these devices and this run
-        chunk = _engine.policy.sweep_chunk(jax.devices(), n_steps + 1, np.dtype(dtype).itemsize)
+        chunk = _sweep.sweep_chunk(jax.devices(), n_steps + 1, np.dtype(dtype).itemsize)
     chunk = min(chunk, n_grid * n_grid * n_att)
     # Warm-up: one chunk of the same shape (a list of gain pairs x the same
     # attitudes), so the timed sweep reuses everything compiled.
@@ -90,9 +90,7 @@ def run(
         "n_steps": n_steps,
         "chunk_size": chunk,
         # The program that ran (sweep's own choice where none was forced).
-        "scalarize": _engine.policy.sweep_scalarize(jax.devices())
-        if scalarize is None
-        else scalarize,
+        "scalarize": _sweep.sweep_scalarize(jax.devices()) if scalarize is None else scalarize,
         "seconds": seconds,
         "first_chunk_with_compile_s": compile_s,
         "first_sweep_s": first_s,

@@ -61,7 +61,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._engine import plan as _plan
-from ._engine.policy import sweep_chunk, sweep_scalarize
+from ._engine.policy import current
 from ._integrators import RKMK4, AbstractLieSolver
 from ._so3 import random_rotation
 from ._stability import SAFETY
@@ -593,6 +593,38 @@ def _run_chunk(
 #: The slot of an attitude's key that seeds its runs' sensor noise (`noise_key`); slots
 #: 0, 1 and ``2 + k`` draw its attitude, its rate and parameter ``k``'s distribution.
 NOISE_SLOT = 2**31 - 1
+
+
+def sweep_scalarize(devices) -> bool:
+    """Whether `so3jax.sweep` over ``devices`` runs the scalarized program by default (a
+    TPU counts as a GPU; never with the ``"scalarize"`` pass off)."""
+    platform = "cpu" if list(devices)[0].platform == "cpu" else "gpu"
+    return current().on("scalarize") and dict(current().sweep_scalarize)[platform]
+
+
+def sweep_chunk(devices, n_saved: int, itemsize: int) -> int:
+    """Default runs per chunk of `so3jax.sweep` over ``devices``.
+
+    The policy's chunk for the devices' platform, per device; on an accelerator at most
+    as many runs as keep ``n_saved`` saved points of every run (48 numbers each, of
+    ``itemsize`` bytes) within half the smallest device's memory (16 GiB where a device
+    does not say), and at least the CPU's chunk. The peak memory of a seed chunk is
+    about 34 numbers a saved point; 48 leaves room for a quadrotor's state.
+    """
+    devices = list(devices)
+    policy = current()
+    if devices[0].platform == "cpu":
+        return policy.chunk("cpu") * len(devices)
+    known = []  # a TPU counts as a GPU
+    for d in devices:
+        try:
+            known.append((d.memory_stats() or {}).get("bytes_limit"))
+        except Exception:  # a backend without memory statistics
+            pass
+    known = [x for x in known if x]
+    budget = (min(known) if known else 16 * 2**30) // 2  # unknown: a 16 GiB device
+    fits = budget // (n_saved * 48 * itemsize)
+    return max(policy.chunk("cpu"), min(policy.chunk("gpu"), fits)) * len(devices)
 
 
 def noise_key(key, attitude):

@@ -18,6 +18,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import os
+import warnings
 from collections.abc import Callable
 
 import equinox as eqx
@@ -28,7 +30,7 @@ import numpy as np
 from ._control import GeometricController, GeometricGains, _check_gain
 from ._engine import derivatives, plan as _plan, run
 from ._engine.passes.frames import Frame, frame_rule, right_or_zero
-from ._engine.policy import jit_own
+from ._engine.policy import current
 from ._integrators import RKMK4, AbstractLieSolver
 from ._scene import Scene, check_rotation
 from ._simulate import (
@@ -46,6 +48,50 @@ from ._types import Array, ArrayLike
 # --------------------------------------------------------------------------
 # Scenes with other gains and initial states
 # --------------------------------------------------------------------------
+
+
+def own_compiler_options() -> dict | None:
+    """The active policy's compiler options for the default backend, less what
+    ``XLA_FLAGS`` sets; or ``None``."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    options = current().compiler_options(jax.default_backend())
+    options = {k: v for k, v in options.items() if f"--{k}=" not in flags}
+    return options or None
+
+
+def jit_own(fn: Callable) -> Callable:
+    """``jax.jit(fn)`` for a program the library compiles itself, with `own_compiler_options`.
+
+    Should XLA not know an option (a later jaxlib may drop one), the program compiles with
+    XLA's defaults instead, with a warning.
+    """
+    plain = jax.jit(fn)
+    options = own_compiler_options()
+    if options is None:
+        return plain
+    try:
+        tuned = jax.jit(fn, compiler_options=options)
+    except TypeError:  # pragma: no cover - a JAX whose `jit` takes no compiler options
+        return plain
+    rejected = []
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if not rejected:
+            try:
+                return tuned(*args, **kwargs)
+            except Exception as e:  # XLA's error type moves between JAX versions
+                if "compile option" not in str(e):
+                    raise
+                rejected.append(e)
+                warnings.warn(
+                    f"so3jax: XLA rejected the compile options {options} ({e}); "
+                    "compiling with its defaults",
+                    stacklevel=2,
+                )
+        return plain(*args, **kwargs)
+
+    return call
 
 
 def _check_tracking_scene(scene, name: str = "scene") -> None:

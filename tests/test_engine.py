@@ -949,15 +949,16 @@ def test_gpu_layout_table(monkeypatch):
 
 def test_sweep_program_default_per_platform(monkeypatch):
     """`sweep` leaves its program to the engine unless told: scalarized on a CPU, the
-    array program on a GPU (`_engine.policy.Policy.sweep_scalarize`); a forced choice is
-    kept. `SweepResult.scalarize` says which ran; the results agree to round-off."""
+    array program on a GPU (`_engine.policy.Policy.sweep_scalarize`, read by
+    `_sweep.sweep_scalarize`); a forced choice is kept. `SweepResult.scalarize` says
+    which ran; the results agree to round-off."""
     from so3jax import _sweep
 
     class FakeGPU:
         platform = "gpu"
 
-    assert _engine.policy.sweep_scalarize(jax.devices("cpu")) is True
-    assert _engine.policy.sweep_scalarize([FakeGPU()]) is False
+    assert _sweep.sweep_scalarize(jax.devices("cpu")) is True
+    assert _sweep.sweep_scalarize([FakeGPU()]) is False
     kw = dict(n_attitudes=3, dt=1e-3, n_steps=20, method=s.LieEuler(), progress=False)
     # (the platform's choice, the caller's): False as on a GPU, True as on a CPU
     ran = []
@@ -971,6 +972,7 @@ def test_sweep_program_default_per_platform(monkeypatch):
 def test_sweep_chunk_default_per_platform():
     """`sweep`'s default chunk: 1024 runs per CPU device; on a GPU 65536 per device, cut
     to half the smallest device's memory, never below 1024."""
+    from so3jax import _sweep
 
     class FakeGPU:
         platform = "gpu"
@@ -984,20 +986,20 @@ def test_sweep_chunk_default_per_platform():
             return None if self.limit is None else {"bytes_limit": self.limit}
 
     cpu = jax.devices("cpu")[0]
-    assert _engine.policy.sweep_chunk([cpu], 1001, 8) == 1024
-    assert _engine.policy.sweep_chunk([cpu] * 3, 10**6, 8) == 3 * 1024
+    assert _sweep.sweep_chunk([cpu], 1001, 8) == 1024
+    assert _sweep.sweep_chunk([cpu] * 3, 10**6, 8) == 3 * 1024
     big = 141 * 2**30
-    assert _engine.policy.sweep_chunk([FakeGPU(big)], 1001, 8) == 65536
-    assert _engine.policy.sweep_chunk([FakeGPU(big)] * 2, 1001, 4) == 2 * 65536
+    assert _sweep.sweep_chunk([FakeGPU(big)], 1001, 8) == 65536
+    assert _sweep.sweep_chunk([FakeGPU(big)] * 2, 1001, 4) == 2 * 65536
     # 40 GiB, 1001 points of 48 float64 numbers: half holds 55,868 runs.
     per = (40 * 2**30 // 2) // (1001 * 48 * 8)
     assert 1024 < per < 65536
-    assert _engine.policy.sweep_chunk([FakeGPU(40 * 2**30)], 1001, 8) == per
+    assert _sweep.sweep_chunk([FakeGPU(40 * 2**30)], 1001, 8) == per
     # The smallest device decides; unknown memory counts as 16 GiB; never below 1024.
     small = [FakeGPU(big), FakeGPU(40 * 2**30)]
-    assert _engine.policy.sweep_chunk(small, 1001, 8) == 2 * per
-    assert _engine.policy.sweep_chunk([FakeGPU(None)], 1001, 8) == (8 * 2**30) // (1001 * 384)
-    assert _engine.policy.sweep_chunk([FakeGPU("raise")], 10**6, 8) == 1024
+    assert _sweep.sweep_chunk(small, 1001, 8) == 2 * per
+    assert _sweep.sweep_chunk([FakeGPU(None)], 1001, 8) == (8 * 2**30) // (1001 * 384)
+    assert _sweep.sweep_chunk([FakeGPU("raise")], 10**6, 8) == 1024
 
 
 def test_array_programs_cut_where_xla_would_recompute(monkeypatch, count_cuts):

@@ -67,7 +67,7 @@ def test_chunked_equals_unchunked(scene, base, monkeypatch, engine_policy):
         kw = {**SETTINGS, "chunk_size": None}
         return s.sweep(scene, K_R, K_OMEGA, key=jax.random.key(3), n_attitudes=4, **kw)
 
-    # The default chunk (1024 runs per CPU device, `_engine.sweep_chunk`) holds all 24 runs:
+    # The default chunk (1024 runs per CPU device, `_sweep.sweep_chunk`) holds all 24 runs:
     # a program for another batch size, equal to round-off (psi = (3 - tr(Rd^T R)) / 2 is
     # formed from numbers of size 1, so it may differ by an ulp of 1).
     assert_same(base, default_chunks(), rtol=1e-12, atol=1e-15)

@@ -196,21 +196,21 @@ def test_forward_and_reverse_tuning_agree():
 
 
 def test_tune_compiles_its_iteration_with_the_engines_options(monkeypatch):
-    """`tune`'s iteration goes through `_engine.policy.jit_own`: the engine's options for the
+    """`tune`'s iteration goes through `so3jax._tune.jit_own`: the engine's options for the
     library's own programs reach XLA (one XLA does not know is rejected, and the program
     compiles with XLA's defaults), a level the caller names in ``XLA_FLAGS`` wins, and the
     tuning does not depend on the level."""
-    from so3jax import _engine
+    from so3jax import _engine, _tune
 
     scene = s.scenes.seed()
     kw = dict(method=s.LieEuler(), dt=DT, n_steps=20, n_iter=3)
     monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
-    assert _engine.policy.own_compiler_options() is None
+    assert _tune.own_compiler_options() is None
     caller = s.tune(scene, (2.0, 1.0), **kw)
     monkeypatch.setenv("XLA_FLAGS", "")
     level2 = {jax.default_backend(): {"xla_backend_optimization_level": 2}}
     with _engine.policy.using(own_compiler_options=level2):
-        assert _engine.policy.own_compiler_options() == {"xla_backend_optimization_level": 2}
+        assert _tune.own_compiler_options() == {"xla_backend_optimization_level": 2}
         own = s.tune(scene, (2.0, 1.0), **kw)
     np.testing.assert_allclose(own.cost_history, caller.cost_history, rtol=1e-10)
     np.testing.assert_allclose(own.k_R_history, caller.k_R_history, rtol=1e-10)

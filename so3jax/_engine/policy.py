@@ -33,10 +33,8 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import dataclasses
-import functools
 import os
 import warnings
-from collections.abc import Callable
 
 import jax
 
@@ -118,7 +116,7 @@ class Policy:
     #: GPU the compiled sweep runs about as fast in either layout and the array program
     #: compiles several times faster (``benchmarks/sweep.py``).
     sweep_scalarize: tuple = (("cpu", True), ("gpu", False))
-    #: XLA's options for the programs the library compiles itself (`jit_own`), per
+    #: XLA's options for the programs the library compiles itself (`so3jax._tune.jit_own`), per
     #: platform: LLVM's ``-O2`` on CPU compiles hoisted loops faster and runs small
     #: scalarized batches faster (``benchmarks/tune.py``). ``XLA_FLAGS`` wins.
     own_compiler_options: tuple = (("cpu", (("xla_backend_optimization_level", 2),)),)
@@ -268,79 +266,3 @@ def one_cpu_device() -> bool:
 def batched_layout(what: str) -> tuple:
     """``(s, c)`` for program ``what`` under the active policy (`Policy.layout`)."""
     return current().layout(what)
-
-
-def own_compiler_options() -> dict | None:
-    """The active policy's compiler options for the default backend, less what
-    ``XLA_FLAGS`` sets; or ``None``."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    options = current().compiler_options(jax.default_backend())
-    options = {k: v for k, v in options.items() if f"--{k}=" not in flags}
-    return options or None
-
-
-def jit_own(fn: Callable) -> Callable:
-    """``jax.jit(fn)`` for a program the library compiles itself, with `own_compiler_options`.
-
-    Should XLA not know an option (a later jaxlib may drop one), the program compiles with
-    XLA's defaults instead, with a warning.
-    """
-    plain = jax.jit(fn)
-    options = own_compiler_options()
-    if options is None:
-        return plain
-    try:
-        tuned = jax.jit(fn, compiler_options=options)
-    except TypeError:  # pragma: no cover - a JAX whose `jit` takes no compiler options
-        return plain
-    rejected = []
-
-    @functools.wraps(fn)
-    def call(*args, **kwargs):
-        if not rejected:
-            try:
-                return tuned(*args, **kwargs)
-            except Exception as e:  # XLA's error type moves between JAX versions
-                if "compile option" not in str(e):
-                    raise
-                rejected.append(e)
-                warnings.warn(
-                    f"so3jax: XLA rejected the compile options {options} ({e}); "
-                    "compiling with its defaults",
-                    stacklevel=2,
-                )
-        return plain(*args, **kwargs)
-
-    return call
-
-
-def sweep_scalarize(devices) -> bool:
-    """Whether `so3jax.sweep` over ``devices`` runs the scalarized program by default (a
-    TPU counts as a GPU; never with the ``"scalarize"`` pass off)."""
-    platform = "cpu" if list(devices)[0].platform == "cpu" else "gpu"
-    return current().on("scalarize") and dict(current().sweep_scalarize)[platform]
-
-
-def sweep_chunk(devices, n_saved: int, itemsize: int) -> int:
-    """Default runs per chunk of `so3jax.sweep` over ``devices``.
-
-    The policy's chunk for the devices' platform, per device; on an accelerator at most
-    as many runs as keep ``n_saved`` saved points of every run (48 numbers each, of
-    ``itemsize`` bytes) within half the smallest device's memory (16 GiB where a device
-    does not say), and at least the CPU's chunk. The peak memory of a seed chunk is
-    about 34 numbers a saved point; 48 leaves room for a quadrotor's state.
-    """
-    devices = list(devices)
-    policy = current()
-    if devices[0].platform == "cpu":
-        return policy.chunk("cpu") * len(devices)
-    known = []  # a TPU counts as a GPU
-    for d in devices:
-        try:
-            known.append((d.memory_stats() or {}).get("bytes_limit"))
-        except Exception:  # a backend without memory statistics
-            pass
-    known = [x for x in known if x]
-    budget = (min(known) if known else 16 * 2**30) // 2  # unknown: a 16 GiB device
-    fits = budget // (n_saved * 48 * itemsize)
-    return max(policy.chunk("cpu"), min(policy.chunk("gpu"), fits)) * len(devices)
