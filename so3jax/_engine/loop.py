@@ -66,7 +66,7 @@ class Loop:
             unroll=current().scan_unroll,
         )[0]
 
-    def _save_loop(self, body, observe, x0):
+    def save_loop(self, body, observe, x0):
         """``n_save`` blocks of ``save_every`` applications of ``body``, observed after each."""
 
         def block(x, _):
@@ -79,7 +79,7 @@ class Loop:
     # ---------------- forward ----------------
 
     def fwd_array(self, P, c0):
-        cN, ys = self._save_loop(lambda c: self.step(P, c), lambda c: self.observe(P, c), c0)
+        cN, ys = self.save_loop(lambda c: self.step(P, c), lambda c: self.observe(P, c), c0)
         return ys, cN
 
     def fwd_checkpointed(self, P, c0):

@@ -58,7 +58,9 @@ class Programs(Loop):
 
         return g, _pick(mP, pf), _pick(mc, cf)
 
-    def _tstep(self, mP, mc, x):
+    def tangent_step(self, mP, mc, x):
+        """One step of ``(P, c, dP, dc)``: the carry and one column of its tangent (the
+        float leaves flagged in ``mc``; a `FRAME` leaf's as three numbers)."""
         P, c, dP, dc = x
 
         def step(P, c):
@@ -117,7 +119,7 @@ class Programs(Loop):
         jax.make_jaxpr(probe)(dP, dc)
         return tuple(k if h else OBS_ZERO for k, h in zip(kinds, hit, strict=True))
 
-    def _jac_tobs(self, mP, mc, mo, x) -> list:
+    def observation_tangents(self, mP, mc, mo, x) -> list:
         """The Jacobian programs' observation tangents of one column: the leaves whose
         kind in ``mo`` is not `OBS_ZERO`, each as its kind stores it (`_obs_tangent`)."""
         outs, touts = self._obs_tangents(mP, mc, x)
@@ -140,7 +142,7 @@ class Programs(Loop):
         of their own made the program about 1.8x slower on a CPU (more kernels).
         """
         mc = _dense_mask(mc)
-        tobs = functools.partial(self._jac_tobs, mP, mc, mo)
+        tobs = functools.partial(self.observation_tangents, mP, mc, mo)
 
         def observe(x):
             P, c, dP, dc = x
@@ -148,13 +150,13 @@ class Programs(Loop):
             return self.observe(P, c), cols(dP, dc)
 
         body = functools.partial(self._jac_body, mP, mc)
-        x, (ys, dys) = self._save_loop(body, observe, (P, c0, dP, dc0))
+        x, (ys, dys) = self.save_loop(body, observe, (P, c0, dP, dc0))
         return ys, x[1], dys, x[3]
 
     def _jac_body(self, mP, mc, x):
         """One step of `jac_array`: ``(P, c, dP, dc)`` -> the same after the step."""
         P, c, dP, dc = x
-        tstep = functools.partial(self._tstep, mP, mc)
+        tstep = functools.partial(self.tangent_step, mP, mc)
         cols = jax.vmap(lambda dP, dc: tstep((P, c, dP, dc)), out_axes=(None, None, 0, 0))
         return cols(dP, dc)
 

@@ -377,7 +377,7 @@ def _jvp_with_frames(fn, Pm, cm, dP, dc, fr):
 
 
 def _frame_step(g, Pm, cm, dP, dc, fr):
-    """``(dc1, c1)``: `Programs._tstep`'s ``jvp`` of ``g`` (``-> (masked carry floats, c1)``)
+    """``(dc1, c1)``: `Programs.tangent_step`'s ``jvp`` of ``g`` (``-> (masked carry floats, c1)``)
     with `Frame` carry tangents.
 
     Raises `FrameError` naming the leaves whose tangent came out dense."""

@@ -51,7 +51,7 @@ def forward(loop: Programs, P, c0, cut=None, batched=None, one=None):
     if batched is not None:
         flags = [b for b, t in zip(jax.tree.leaves(batched[0]), table, strict=True) if not t]
         flat = sc.settle_batched(body, flat, _component_flags(ex, (flags, batched[1])), one)
-    flat, ys = _hoisted(functools.partial(loop._save_loop, body, obs), flat)
+    flat, ys = _hoisted(functools.partial(loop.save_loop, body, obs), flat)
     _, cN = sc.join(flat, jax.eval_shape(lambda: ex))
     return sc.join(ys, obs_struct, (loop.n_save,)), cN
 
@@ -90,9 +90,10 @@ def _jacobian(loop, mP, mc, mo, P, c0, dP, dc0, cut, batched, one):
     columns = None
     if n == 1 and _TRACING.get()[0] >= current().column_cuts_from:
         columns = [False] * n_primal + [True] * n_tangent
-    body, _ = sc.flat_program(functools.partial(loop._tstep, mP, mc), ex, cut, columns=columns)
+    tstep = functools.partial(loop.tangent_step, mP, mc)
+    body, _ = sc.flat_program(tstep, ex, cut, columns=columns)
     tobs, tobs_struct = sc.flat_program(
-        functools.partial(loop._jac_tobs, mP, mc, mo), ex, cut, columns=columns
+        functools.partial(loop.observation_tangents, mP, mc, mo), ex, cut, columns=columns
     )
     obs, obs_struct = sc.flat_program(lambda x: loop.observe(x[0], x[1]), ex, cut)
     flat0 = sc.split((P, c0)) + jax.vmap(sc.split)((dP, dc0))
@@ -114,7 +115,7 @@ def _jacobian(loop, mP, mc, mo, P, c0, dP, dc0, cut, batched, one):
     if batched is not None:  # a column's components: the body's example
         flags = _component_flags(ex, batched)
         flat0 = sc.settle_batched(body, flat0, flags, one, [jnp.result_type(x) for x in flat0])
-    flat, (ys, dys) = _hoisted(functools.partial(loop._save_loop, vbody, observe), flat0)
+    flat, (ys, dys) = _hoisted(functools.partial(loop.save_loop, vbody, observe), flat0)
     _, cN = sc.join(flat[:n_primal], jax.eval_shape(lambda: (P, c0)))
     if n == 1:
         flat = flat[:n_primal] + [x[None] for x in flat[n_primal:]]
