@@ -220,6 +220,47 @@ def test_ablation_quick(tmp_path):
         assert r["run_s"] == r["run_s_range"][0] == min(r["rounds"]) > 0 and r["compile_s"] > 0
 
 
+def test_ablation_merge_replaces_the_workloads_measured_again(tmp_path):
+    """``ablation.py --merge``: the workloads measured again replace their rows, the others
+    are kept in their order, new ones come last, and ``merged`` names the environment of
+    each; results with other configurations are refused."""
+    sys.path.insert(0, str(BENCH))
+    try:
+        import ablation
+    finally:
+        sys.path.remove(str(BENCH))
+
+    def rows(workload, tag):
+        return [{"workload": workload, "config": c, "tag": tag} for c in ("all passes", "none")]
+
+    configs = {"all passes": {}, "none": {}}
+    old = {
+        "configs": configs,
+        "quick": False,
+        "env": {"date": "old"},
+        "workloads": {"run": {}, "grad": {}},
+        "rows": rows("run", "old") + rows("grad", "old"),
+    }
+    path = tmp_path / "ablation.json"
+    path.write_text(json.dumps(old))
+    new = dict(old, env={"date": "new"}, workloads={"grad": {}, "large grad": {}})
+    new["rows"] = rows("large grad", "new") + rows("grad", "new")
+    out = ablation.merged(path, new)
+    assert list(out["workloads"]) == ["run", "grad", "large grad"]
+    assert [(r["workload"], r["tag"]) for r in out["rows"]] == [
+        ("run", "old"),
+        ("run", "old"),
+        ("grad", "new"),
+        ("grad", "new"),
+        ("large grad", "new"),
+        ("large grad", "new"),
+    ]
+    assert out["merged"] == {"grad": {"date": "new"}, "large grad": {"date": "new"}}
+    assert out["env"] == {"date": "old"}
+    with pytest.raises(ValueError, match="other configurations"):
+        ablation.merged(path, dict(new, configs={"all passes": {}}))
+
+
 @pytest.mark.slow
 def test_vehicle_quick(tmp_path):
     """The plain quadrotor is the baseline of every ratio in its dtype, measured in the same
