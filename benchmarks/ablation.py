@@ -13,7 +13,7 @@ program, "autodiff" (every pass off and ``program="autodiff"``: the checkpointed
 - ``grad``: `jax.grad` of `so3jax.expected_cost` over 256 starts with respect to
   ``(k_R, k_Omega)``, 200 steps;
 - ``large grad``: the same over 1024 starts, where a batch of Jacobian programs runs in
-  cache-sized tiles (the ``tiles`` pass; over 256 starts it runs two);
+  cache-sized tiles (the ``tiles`` pass: sixteen tiles here, four over 256 starts);
 - ``small grad``: the same over 8 starts, a batch below the scalarized layout's
   threshold: the array program, vmapped (where the ``settle`` pass acts);
 - ``run grad``: `jax.grad` of one run's cost, the sum of ``|Omega|^2`` over the 1000 saved
@@ -83,24 +83,19 @@ CONFIGS = {
 BASE = "all passes"
 
 
+#: Each workload's size (steps, or (runs, steps)), ``(quick, full)``.
+SIZES = {
+    "run": (20, 1000),
+    "batch": ((32, 10), (4096, 100)),
+    "grad": ((16, 10), (256, 200)),
+    "large": ((32, 10), (1024, 200)),
+    "small": (4, 8),
+    "quadrotor": (20, 800),
+}
+
+
 def sizes(quick: bool) -> dict:
-    if quick:
-        return {
-            "run": 20,
-            "batch": (32, 10),
-            "grad": (16, 10),
-            "large": (32, 10),
-            "small": 4,
-            "quadrotor": 20,
-        }
-    return {
-        "run": 1000,
-        "batch": (4096, 100),
-        "grad": (256, 200),
-        "large": (1024, 200),
-        "small": 8,
-        "quadrotor": 800,
-    }
+    return {name: quick_full[0 if quick else 1] for name, quick_full in SIZES.items()}
 
 
 def workloads(quick: bool) -> dict:
