@@ -807,6 +807,45 @@ def difftune(R: Results) -> str:
     return "\n".join(lines) + "\n"
 
 
+@block("adjoint")
+def adjoint(R: Results) -> str:
+    d = R.get("adjoint.json")
+    if d is None:
+        return not_measured("adjoint.py") + "\n"
+    by = {(r["workload"], r["saved"]): r for r in d["rows"]}
+    rows = []
+    for workload in dict.fromkeys(r["workload"] for r in d["rows"]):
+        res, ck = by[(workload, "residuals")], by[(workload, "checkpoints")]
+        rows.append(
+            [
+                workload,
+                span(res["first_s_rounds"]),
+                span(ck["first_s_rounds"]),
+                x(ck["first_s"] / res["first_s"]),
+                span(res["run_s_rounds"]),
+                span(ck["run_s_rounds"]),
+                x(ck["run_s"] / res["run_s"]),
+            ]
+        )
+    header = [
+        "",
+        "first call: residuals",
+        "checkpoints",
+        "checkpoints / residuals",
+        "later calls: residuals",
+        "checkpoints",
+        "checkpoints / residuals",
+    ]
+    lines = table(header, rows)
+    lines += [
+        "",
+        f"{device(d)}, float64, DiffTune's quadrotor, {d['n_steps']} steps, "
+        f"`value_and_grad` through the 12 gains; each figure in a fresh interpreter, the "
+        f"fastest of {d['rounds']} rounds with the range. {sources(['adjoint.json'])}",
+    ]
+    return "\n".join(lines) + "\n"
+
+
 @block("startup")
 def startup(R: Results) -> str:
     names = [n for n in ["startup.json", *R.gpu("startup")] if R.get(n) is not None]

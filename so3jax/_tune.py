@@ -15,6 +15,7 @@ minimises its mean over a batch of initial attitudes with optax.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -28,9 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._control import GeometricController, GeometricGains, _check_gain
-from ._engine import derivatives, plan as _plan, run
+from ._engine import derivatives, plan as _plan, policy as _policy, run
 from ._engine.passes.frames import Frame, frame_rule, right_or_zero
-from ._engine.policy import current
+from ._engine.policy import current, using
 from ._integrators import RKMK4, AbstractLieSolver
 from ._scene import Scene, check_rotation
 from ._simulate import (
@@ -996,9 +997,14 @@ def _tune_general(
 
     optimizer = optax.apply_if_finite(optimizer, max_consecutive_errors=5)
     opt_state = optimizer.init(params)
-    history, iterates, mode = _descend(
-        loss, params, optimizer, opt_state, n_iter, gradient, project, progress
-    )
+    # One start: a single run, whose discrete adjoint keeps every step's residuals within
+    # the policy's budget (`Policy.tune_residual_bytes`); a batch keeps checkpoints.
+    budget = _policy.current().tune_residual_bytes
+    scope = contextlib.nullcontext() if batch is not None else using(adjoint_residual_bytes=budget)
+    with scope:
+        history, iterates, mode = _descend(
+            loss, params, optimizer, opt_state, n_iter, gradient, project, progress
+        )
     costs = np.asarray(history)
     stacked = jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *iterates)
     best = int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))

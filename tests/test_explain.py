@@ -82,6 +82,12 @@ def test_grad_through_twelve_gains_is_the_discrete_adjoint():
     assert _strategies(plan) == ["checkpointed jvp, discrete adjoint"]
     # the 12 gains and what the scene derives from them (the held control at t = 0)
     assert plan.of("derivative")[0]["scalars"] >= 12
+    # checkpoints by default; every step's residuals within a budget (`tune`'s, one start)
+    assert [e["saved"] for e in plan.of("adjoint")] == ["checkpoints"]
+    budget = _engine.policy.current().tune_residual_bytes
+    with _engine.policy.using(adjoint_residual_bytes=budget):
+        (adjoint,) = so3jax.explain(jax.grad(loss), gains).of("adjoint")
+    assert adjoint["saved"] == "residuals" and adjoint["bytes_per_step"] * N <= budget
 
 
 def test_hessian_differentiates_the_rules_programs():

@@ -15,8 +15,8 @@ There are four, all exact to round-off against each other:
 - `CheckpointedAdjoint`: through more than the policy's ``forward_jacobian_max``
   scalars, and whatever their number with ``program="adjoint"``: `Autodiff`'s ``jvp``
   in forward mode and for second derivatives, and the engine's discrete adjoint (a
-  backward scan over checkpointed segments) in reverse mode, behind so3jax's own
-  ``linear_call``.
+  backward scan over every step's residuals, or over checkpointed segments) in reverse
+  mode, behind so3jax's own ``linear_call``.
 
 Programs outside the fixed-step engine (`so3jax.simulate` with tolerances, whose loop
 is a ``while_loop``) use the same pieces: `Flagged` splits a rule's inputs into the
@@ -154,9 +154,13 @@ class CheckpointedAdjoint(Strategy):
 
     The tangent is a ``linear_call`` (`_linear_tangent`) whose program is JAX's ``jvp`` of
     the checkpointed program and whose transpose is the discrete adjoint
-    (`Programs.adj_array`, `_adjoint_transpose`): each of its
-    loops one kernel on a CPU (the ``"hoist"`` pass), where JAX's transpose of
-    `Autodiff`'s ``jvp`` runs XLA's loops of many kernels. Observations a cost does not
+    (`_adjoint_transpose`): each of its loops one kernel on a CPU (the ``"hoist"``
+    pass), where JAX's transpose of `Autodiff`'s ``jvp`` runs XLA's loops of many
+    kernels. Its memory (`_adjoint_forward`): every step's residuals, kept by the run's
+    forward pass, while they fit the policy's ``adjoint_residual_bytes`` per run (linear
+    in ``n_steps``; one backward loop, `Programs.adj_residuals`); past it the carries at
+    the starts of checkpointed segments (``~ sqrt(n_steps)``), each segment replayed
+    backward (`Programs.adj_array`). Observations a cost does not
     use are left out of the backward pass, as JAX's transpose leaves them out. The
     ``linear_call``'s own derivative (``jax.hessian``, ``jvp`` of ``grad``) is JAX's
     ``jvp`` of the checkpointed program (`_linear_tangent`'s rule). ``why``: for
@@ -174,27 +178,22 @@ class CheckpointedAdjoint(Strategy):
         real = list(nz)
         t_leaves, nz = settle.carry_tangents(loop.step, primals, p_leaves, t_leaves, nz)
         P, c0 = primals
-        ck = None
-        if loop.S > 1 and loop.K % loop.save_every == 0:
-            # the run and the adjoint's checkpoints in one pass (array layout, as the
-            # adjoint): one forward pass fewer than the run and then `Programs.checkpoints`
-            out, ck = _dual(loop.fwd_segments, loop.fwd_segments, "adjoint")(P, c0)
-        else:
-            out = fwd(P, c0)
-        out_nz = [_is_float(o) for o in jax.tree.leaves(out)]
         floats = [_is_float(x) for x in p_leaves]
         nz = [z and f for z, f in zip(nz, floats, strict=True)]
         n_P = len(jax.tree.leaves(P))
         mP, mc = _tangent_masks(
             loop.step, P, c0, _pick(floats[:n_P], nz[:n_P]), _pick(floats[n_P:], nz[n_P:])
         )
+        out, saved, layout = _adjoint_forward(loop, fwd, mP, mc, P, c0)
+        out_nz = [_is_float(o) for o in jax.tree.leaves(out)]
         n_ys = len(jax.tree.leaves(out[0]))
         avals = jax.eval_shape(lambda: out)
 
         def adjoint(res, cts):  # cts: the float outputs' cotangents, None for symbolic zeros
             P, c0 = jax.tree.unflatten(treedef, res[1])
-            ck = res[2]
-            gP, gc = _adjoint_transpose(loop, mP, mc, P, c0, avals, cts[:n_ys], cts[n_ys:], ck)
+            gP, gc = _adjoint_transpose(
+                loop, mP, mc, layout, P, c0, avals, cts[:n_ys], cts[n_ys:], res[2]
+            )
             return _pick(nz, _fill(floats, gP + gc, [None] * len(floats)))
 
         # Forward mode (``jacfwd``, `so3jax.tune`'s default through a dozen gains) is JAX's
@@ -203,17 +202,47 @@ class CheckpointedAdjoint(Strategy):
         plain = _float_tangent(loop.fwd_checkpointed, treedef, nz, out_nz)
         xs, ts = _pick(nz, p_leaves), _pick(nz, t_leaves)
         tan = _linear_tangent(
-            plain, plain, xs, p_leaves, ts, _pick(nz, real), adjoint=adjoint, extra=ck
+            plain, plain, xs, p_leaves, ts, _pick(nz, real), adjoint=adjoint, extra=saved
         )
         return out, _with_float0(out, out_nz, tan)
 
 
-def _adjoint_transpose(loop: Programs, mP, mc, P, c0, avals, ct_ys: list, ct_cN: list, ck):
-    """``(gP, gc)``: the discrete adjoint (`Programs.adj_array`) at the cotangents ``ct_ys``
-    (one per observation leaf) and ``ct_cN`` (one per float leaf of the final carry),
-    where ``None`` is a symbolic zero: an observation the cost does not use is left out
-    of the backward pass. ``avals``: the shapes of the run's ``(ys, cN)``; ``ck``: the
-    segments' starting carries (`Programs.fwd_segments`), or ``None``."""
+def _adjoint_forward(loop: Programs, fwd: Callable, mP, mc, P, c0):
+    """``(out, saved, layout)``: the run's value and what its discrete adjoint reads.
+
+    Every step's residuals (`Programs.fwd_residuals`; ``layout`` their packing) while
+    they take at most the policy's ``adjoint_residual_bytes`` per run; else the carries
+    at the starts of checkpointed segments (`Programs.fwd_segments`, ``layout`` ``None``),
+    or nothing where the segments do not fit the save blocks (`Programs.adj_array`
+    then computes them)."""
+    steps, budget = loop.n_save * loop.save_every, current().adjoint_residual_bytes
+    if budget > 0 and steps == loop.n:  # the residuals' size is known once they are traced
+        layout: list = []
+        run = functools.partial(loop.fwd_residuals, mP, mc, layout)
+        with _plan.deferred() as pending:  # dropped if the residuals are too large
+            out, saved = _dual(run, run, "adjoint")(P, c0)
+        per_step = sum(math.prod(s) * a.dtype.itemsize for a in saved[0] for s in [a.shape[2:]])
+        if per_step * steps <= budget:
+            _plan.extend(pending)
+            _plan.note("adjoint", saved="residuals", bytes_per_step=per_step, steps=steps)
+            return out, saved, layout
+    if loop.S > 1 and loop.K % loop.save_every == 0:
+        # the run and the adjoint's checkpoints in one pass (array layout, as the
+        # adjoint): one forward pass fewer than the run and then `Programs.checkpoints`
+        out, ck = _dual(loop.fwd_segments, loop.fwd_segments, "adjoint")(P, c0)
+    else:
+        out, ck = fwd(P, c0), None
+    _plan.note("adjoint", saved="checkpoints", segments=loop.S, steps_per_segment=loop.K)
+    return out, ck, None
+
+
+def _adjoint_transpose(loop: Programs, mP, mc, layout, P, c0, avals, ct_ys, ct_cN, saved):
+    """``(gP, gc)``: the discrete adjoint at the cotangents ``ct_ys`` (one per observation
+    leaf) and ``ct_cN`` (one per float leaf of the final carry), where ``None`` is a
+    symbolic zero: an observation the cost does not use is left out of the backward pass.
+    ``avals``: the shapes of the run's ``(ys, cN)``; ``saved`` and ``layout``: what
+    `_adjoint_forward` returned (`Programs.adj_residuals` reads residuals,
+    `Programs.adj_array` checkpoints)."""
     keep = tuple(c is not None for c in ct_ys)
     kept = [c for c in ct_ys if c is not None]
     ct_cN = [
@@ -222,9 +251,12 @@ def _adjoint_transpose(loop: Programs, mP, mc, P, c0, avals, ct_ys: list, ct_cN:
     ]
     # Array layout only: XLA compiles a scalarized adjoint step (thousands of scalar
     # operations) far more slowly than it runs it. Under ``vmap``, `_dual` batches it.
-    adj = functools.partial(loop.adj_array, mP, mc, keep)
-    adj = _dual(adj, adj, "adjoint")
-    gP, gc = adj(P, c0, kept, ct_cN, ck)
+    if layout is not None:
+        adj = functools.partial(loop.adj_residuals, mP, mc, keep, layout)
+        gP, gc = _dual(adj, adj, "adjoint")(P, saved, kept, ct_cN)
+    else:
+        adj = functools.partial(loop.adj_array, mP, mc, keep)
+        gP, gc = _dual(adj, adj, "adjoint")(P, c0, kept, ct_cN, saved)
     return list(gP), list(gc)
 
 

@@ -132,6 +132,11 @@ class Plan:
           whether the tangent program carries its tangent, ``False`` for a leaf no
           differentiated input reaches, such as the reference attitude under the
           gains); the strategies are `so3jax._engine.derivatives`' objects;
+        - ``"adjoint"``: what the discrete adjoint's forward pass keeps for its backward
+          pass (``saved``): ``"residuals"``, every step's (``bytes_per_step`` over
+          ``steps``, within the policy's ``adjoint_residual_bytes``), or
+          ``"checkpoints"``, the carries at the starts of ``segments`` of
+          ``steps_per_segment`` steps, each replayed backward;
         - ``"traced"``: the array program of ``program`` traced by JAX (the engine traces
           each program once per call and batches that trace; every further entry is
           tracing time spent again);

@@ -158,6 +158,17 @@ class Policy:
     #: Through at most this many differentiated scalars a run computes its Jacobian with
     #: its value in one pass (`so3jax._engine.derivatives.OnePassJacobian`).
     forward_jacobian_max: int = 8
+    #: The discrete adjoint (`so3jax._engine.derivatives.CheckpointedAdjoint`) keeps every
+    #: step's residuals from the run's forward pass while they take at most this many
+    #: bytes per run (memory linear in ``n_steps``): its backward pass then replays no
+    #: step, and its program is smaller to compile. Past it (and at 0, the
+    #: default), checkpointed segments, memory ``~ sqrt(n_steps)``, each replayed
+    #: backward. Not the default: the rule cannot see a ``vmap`` around it, and batched
+    #: the residuals' program runs slower than the segments (``benchmarks/adjoint.py``).
+    adjoint_residual_bytes: int = 0
+    #: `adjoint_residual_bytes` for `so3jax.tune`'s iteration with one start, a single run
+    #: by construction.
+    tune_residual_bytes: int = 32 * 2**20
 
     def __post_init__(self):
         unknown = set(self.passes) - PASSES

@@ -5,8 +5,10 @@
 - the Jacobian program (the primal once and ``n`` unit tangents batched over it; its
   scalarized layout, with attitude tangents as three numbers, is the ``"scalarize"``
   pass's, `so3jax._engine.passes.scalarized`);
-- the discrete adjoint (a backward scan over checkpointed segments of ``jax.vjp`` of a
-  segment's steps, through the differentiated leaves alone).
+- the discrete adjoint: a backward scan over every step's residuals, kept by the forward
+  pass (`fwd_residuals`, `adj_residuals`), or over checkpointed segments of ``jax.vjp``
+  of a segment's steps (`fwd_segments`, `adj_array`), through the differentiated
+  leaves alone.
 
 Each equals JAX's own derivative of the reference to round-off
 (``tests/test_engine.py``, ``tests/passes/``). References: A. Griewank, A. Walther,
@@ -275,6 +277,82 @@ class Programs(Loop):
             xs = (jnp.arange(self.S), ck, cts)
             (lam, acc), _ = jax.lax.scan(segment, carry0, xs, reverse=True)
         gP = _fill(mP, acc, [jnp.zeros_like(p) for p in pf])
+        return gP, _fill(mc, lam, [jnp.zeros_like(c) for c in cf])
+
+    # ---------------- adjoint from every step's residuals ----------------
+
+    def _step_masked(self, mc, P, c):
+        """One step as a function with output the carry's float leaves flagged in ``mc``,
+        and the whole carry as auxiliary output."""
+        c1 = self.step(P, c)
+        return _pick(mc, _floats(c1)), c1
+
+    def fwd_residuals(self, mP, mc, layout: list, P, c0):
+        """``((ys, cN), (res, cs))``: `fwd_array`'s run with what its discrete adjoint needs
+        (`adj_residuals`): per step, the residuals of JAX's ``vjp`` of the step through the
+        float leaves flagged in ``mP`` and ``mc``, packed one vector per dtype (`_pack`),
+        stacked ``(n_save, save_every, ...)``; and the carry at every saved point
+        ``(n_save, ...)``, from which the observations' pullbacks are recomputed.
+
+        ``layout`` receives the residuals' tree and packing when the step is traced.
+        Memory: linear in ``n_steps``, the residuals of one step each (the policy's
+        ``adjoint_residual_bytes`` bounds it; `so3jax._engine.derivatives.CheckpointedAdjoint`).
+        """
+
+        def one(c, _):
+            g, Pm, cm = self._masked(functools.partial(self._step_masked, mc), mP, mc, P, c)
+            _, pull, c1 = jax.vjp(g, Pm, cm, has_aux=True)
+            leaves, tree = jax.tree.flatten(pull)
+            packed, spec = _pack(leaves)
+            layout[:] = [tree, spec]
+            return c1, packed
+
+        def block(c, _):
+            if self.save_every == 1:
+                c1, res = one(c, None)
+                res = jax.tree.map(lambda a: a[None], res)
+            else:
+                c1, res = jax.lax.scan(one, c, None, length=self.save_every)
+            return c1, (self.observe(P, c1), res, c1)
+
+        cN, (ys, res, cs) = jax.lax.scan(block, c0, None, length=self.n_save)
+        return (ys, cN), (res, cs)
+
+    def adj_residuals(self, mP, mc, keep, layout: list, P, saved, ct_obs, ct_cN):
+        """The discrete adjoint from `fwd_residuals`' ``saved`` residuals: ``(gP, gc0)`` as
+        `adj_array` gives them, in one backward loop with no forward pass replayed.
+
+        Per saved point, last first: the pullback of the observations flagged in ``keep``
+        (whose cotangents ``ct_obs`` holds, one per saved point) at the saved carry, then
+        the steps' pullbacks from their residuals."""
+        tree, spec = layout
+        res, cs = saved
+        pf = _floats(P)
+
+        def observed(P, c):
+            return _pick(keep, jax.tree.leaves(self.observe(P, c)))
+
+        def step_back(carry, packed):
+            lam, acc = carry
+            gP, lam = jax.tree.unflatten(tree, _unpack(packed, spec))(lam)
+            return (lam, [a + g for a, g in zip(acc, gP, strict=True)]), None
+
+        def block(carry, x):
+            (lam, acc), (res, c, ct) = carry, x
+            if ct:
+                g, Pm, cm = self._masked(observed, mP, mc, P, c)
+                gP, gc = jax.vjp(g, Pm, cm)[1](ct)
+                lam = [a + g for a, g in zip(lam, gc, strict=True)]
+                acc = [a + g for a, g in zip(acc, gP, strict=True)]
+            if self.save_every == 1:
+                return step_back((lam, acc), jax.tree.map(lambda a: a[0], res))
+            return jax.lax.scan(step_back, (lam, acc), res, reverse=True)
+
+        acc0 = [jnp.zeros_like(p) for p in _pick(mP, pf)]
+        carry0 = (_pick(mc, ct_cN), acc0)
+        (lam, acc), _ = jax.lax.scan(block, carry0, (res, cs, list(ct_obs)), reverse=True)
+        gP = _fill(mP, acc, [jnp.zeros_like(p) for p in pf])
+        cf = _floats(jax.tree.map(lambda a: a[0], cs))
         return gP, _fill(mc, lam, [jnp.zeros_like(c) for c in cf])
 
 
