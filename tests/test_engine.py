@@ -156,6 +156,13 @@ def test_adjoint_from_residuals_or_checkpoints(saved):
             assert entry["saved"] == saved
         batched = jax.jit(jax.vmap(jax.grad(f)))(Ks)
         assert _rel(batched, jax.jit(jax.vmap(jax.grad(ref)))(Ks)) < 1e-10
+        f32 = _traj_cost("adjoint", SEED_METHOD, save_every=3, dtype=jnp.float32)
+        g32 = _jit_grad(f32)(K0.astype(jnp.float32))
+        assert g32.dtype == jnp.float32 and _rel(g32, _jit_grad(ref)(K0)) < 1e-4
+    if saved == "checkpoints":  # residuals traced, then too large for the budget: dropped
+        with _engine.policy.using(adjoint_residual_bytes=1):
+            assert [e["saved"] for e in s.explain(jax.grad(f), K0).of("adjoint")] == [saved]
+            assert _rel(_jit_grad(f)(K0), _jit_grad(ref)(K0)) < 1e-10
 
 
 @pytest.mark.parametrize("program", ["auto"])
