@@ -674,8 +674,11 @@ def tune(
       (`jax.grad`) or ``"forward"`` (`jax.jacfwd`, one tangent per scalar,
       constant memory). With 2 or 6 gains both run the engine's one-pass
       Jacobian at about the same cost; through a dozen gains of one run
-      (DiffTune's 12 quadrotor gains) forward mode is faster and compiles in less
-      time (``docs/engine.md``).
+      (DiffTune's 12 quadrotor gains) reverse mode, the engine's discrete adjoint,
+      runs several times faster (``benchmarks/difftune.py``). With one start its
+      forward pass keeps every step's residuals for the backward pass (within the
+      engine policy's ``tune_residual_bytes``; memory linear in `n_steps`), with a
+      batch of starts checkpointed segments (``benchmarks/adjoint.py``).
     - `progress`: show a tqdm progress bar.
 
     **General mode** (``cost`` given): any scene, any pytree of gains, any

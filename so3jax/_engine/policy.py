@@ -135,6 +135,12 @@ class Policy:
     #: The largest input leaf of a hoisted loop, in bytes over a batch's runs: one
     #: kernel gives up XLA's threads, which pay past that (``benchmarks/emitters.py``).
     hoist_max_bytes: int = 64 * 1024
+    #: The largest array a hoisted loop makes inside its body (a segment's stacked
+    #: residuals, say), in bytes over a batch's runs: from 8 MiB XLA's CPU compiler splits
+    #: an operation on it across threads, which a hoisted kernel cannot call (the program
+    #: fails to link ``__xla_cpu_runtime_ParallelForkJoin``:
+    #: ``tests/passes/test_pass_hoist.py``).
+    hoist_max_inner: int = 8 * 2**20
     #: The most elements a reduction in a hoisted loop may read over the batch: past it
     #: XLA makes a fusion kind its older CPU emitter does not implement.
     hoist_max_reduced: int = 1024

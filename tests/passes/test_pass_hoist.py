@@ -53,3 +53,35 @@ def test_residuals_pack_into_one_vector_per_dtype_and_back(specs):
     for a, b in zip(back, leaves, strict=True):
         assert a.dtype == b.dtype and a.shape == b.shape
         np.testing.assert_array_equal(a, b)
+
+
+def test_no_hoisted_loop_makes_an_array_xla_would_split_across_threads():
+    """A loop that makes an array of the policy's ``hoist_max_inner`` bytes or more inside
+    its body, over the batch, is not hoisted: from 8 MiB XLA's CPU compiler splits an
+    operation on it across threads, and the hoisted kernel fails to link
+    ``__xla_cpu_runtime_ParallelForkJoin`` (``vmap`` of ``grad`` through a quadrotor's
+    gains over 192 runs of 100 steps: the discrete adjoint's segments of 10 steps stack
+    about 45 kB of residuals a run). Traced only: compiling the failing program takes
+    20 s."""
+    import equinox as eqx
+    import jax
+
+    import so3jax as s
+    from so3jax._engine import policy
+
+    scene = s.scenes.quadrotor_circle(control_period=0.0025)
+
+    def loss(k_x):
+        sc = eqx.tree_at(lambda q: q.gains.k_x, scene, k_x)
+        return jnp.sum(s.simulate(sc, s.RKMK4(), 0.0025, 100).extras["e_x"] ** 2)
+
+    def adjoint_loop(runs, **policy_changes):
+        k_x = scene.gains.k_x * (1 + 1e-3 * jnp.arange(runs))[:, None]
+        with policy.using(**policy_changes):
+            plan = s.explain(jax.vmap(jax.grad(loss)), k_x)
+        assert [e["saved"] for e in plan.of("adjoint")] == ["checkpoints"]
+        return plan.of("hoisting")[-1]  # the backward pass's loop, batched
+
+    big = adjoint_loop(192)
+    assert not big["hoisted"] and "hoist_max_inner" in big["why"]
+    assert adjoint_loop(192, hoist_max_inner=2**62)["hoisted"]  # what failed to link

@@ -95,6 +95,26 @@ def _hoistable(jaxpr, runs: int = 1, reductions: bool = True) -> bool:
     return True
 
 
+def _largest_inner(jaxpr) -> int:
+    """The bytes of the largest array made inside the bodies of ``jaxpr``'s equations (its
+    loops' and calls', at any depth): what one iteration of a loop holds, its stacked
+    inner loops included; not ``jaxpr``'s own inputs and outputs."""
+
+    def largest(j, top: bool) -> int:
+        most = 0
+        for e in j.eqns:
+            if not top:
+                for v in e.outvars:
+                    aval = v.aval
+                    if hasattr(aval, "shape") and hasattr(aval, "dtype"):
+                        most = max(most, math.prod(aval.shape) * aval.dtype.itemsize)
+            for sub in sc.subjaxprs(e.params):
+                most = max(most, largest(sub, False))
+        return most
+
+    return largest(jaxpr, True)
+
+
 def _hoisted(loop: Callable, *args, xs_from: int | None = None):
     """``loop(*args)`` (a `lax.scan`), compiled as one kernel on a CPU.
 
@@ -124,7 +144,8 @@ def _hoisted(loop: Callable, *args, xs_from: int | None = None):
     out (`_unrolled`) if that is all that stood in the way. Loops with a primitive
     outside `_HOISTABLE` or a reduction over more than ``unroll_max_terms`` terms and
     ``hoist_max_reduced`` elements, loops whose largest input leaf takes more than
-    ``hoist_max_bytes`` over the batch, second derivatives' loops (`_tracing`), every
+    ``hoist_max_bytes`` over the batch or that make an array of ``hoist_max_inner`` or
+    more inside (`_largest_inner`), second derivatives' loops (`_tracing`), every
     loop off a CPU, and every loop
     where JAX sees more than one device run as before: XLA partitions a sharded program after
     this choice, and a hoisted loop then calls collectives the older emitter cannot
@@ -153,6 +174,12 @@ def _hoisted(loop: Callable, *args, xs_from: int | None = None):
         )
         return loop(*args)
     closed, shape = jax.make_jaxpr(loop, return_shape=True)(*args)
+    if _largest_inner(closed.jaxpr) * runs >= policy.hoist_max_inner:
+        _plan.note(
+            "hoisting", hoisted=False, runs=runs, why="an array over the policy's hoist_max_inner"
+        )
+        outs = jex_core.jaxpr_as_fun(closed)(*jax.tree.leaves(args))
+        return jax.tree.unflatten(jax.tree.structure(shape), outs)
     hoisted = closed
     if not _hoistable(closed.jaxpr, runs, reductions) and _hoistable(closed.jaxpr, 0):
         hoisted = _unrolled(closed)  # only reductions stand in the way: write them out
