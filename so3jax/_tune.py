@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._control import GeometricController, GeometricGains, _check_gain
-from ._engine import derivatives, plan as _plan, policy as _policy, run
+from ._engine import derivatives, plan as _plan, run
 from ._engine.passes.frames import Frame, frame_rule, right_or_zero
 from ._engine.policy import current, using
 from ._integrators import RKMK4, AbstractLieSolver
@@ -946,13 +946,13 @@ def _tune_general(
     n_steps = _check_int(n_steps, "n_steps", 1)
     save_every = _check_int(save_every, "save_every", 1)
     where = _default_where(scene) if where is None else where
-    current = where(scene)
+    present = where(scene)
     dtype = scene.y0.R.dtype
-    params = current if gains0 is None else gains0
-    if jax.tree.structure(params) != jax.tree.structure(current):
+    params = present if gains0 is None else gains0
+    if jax.tree.structure(params) != jax.tree.structure(present):
         raise ValueError(
             "gains0 must have the structure of the scene's gains "
-            f"({jax.tree.structure(current)}), got {jax.tree.structure(params)}"
+            f"({jax.tree.structure(present)}), got {jax.tree.structure(params)}"
         )
     params = jax.tree.map(lambda p: jnp.asarray(p, dtype), params)
     # Checks that need concrete values (a quadrotor's dt against its control period),
@@ -1002,7 +1002,7 @@ def _tune_general(
     opt_state = optimizer.init(params)
     # One start: a single run, whose discrete adjoint keeps every step's residuals within
     # the policy's budget (`Policy.tune_residual_bytes`); a batch keeps checkpoints.
-    budget = _policy.current().tune_residual_bytes
+    budget = current().tune_residual_bytes
     scope = contextlib.nullcontext() if batch is not None else using(adjoint_residual_bytes=budget)
     with scope:
         history, iterates, mode = _descend(

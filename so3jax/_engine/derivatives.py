@@ -221,7 +221,7 @@ def _adjoint_forward(loop: Programs, fwd: Callable, mP, mc, P, c0):
         run = functools.partial(loop.fwd_residuals, mP, mc, layout)
         with _plan.deferred() as pending:  # dropped if the residuals are too large
             out, saved = _dual(run, run, "adjoint")(P, c0)
-        per_step = sum(math.prod(s) * a.dtype.itemsize for a in saved[0] for s in [a.shape[2:]])
+        per_step = sum(math.prod(a.shape[2:]) * a.dtype.itemsize for a in saved[0])
         if per_step * steps <= budget:
             _plan.extend(pending)
             _plan.note("adjoint", saved="residuals", bytes_per_step=per_step, steps=steps)

@@ -60,16 +60,17 @@ class Programs(Loop):
 
         return g, _pick(mP, pf), _pick(mc, cf)
 
+    def _step_masked(self, mc, P, c):
+        """One step as a function with output the carry's float leaves flagged in ``mc``,
+        and the whole carry as auxiliary output."""
+        c1 = self.step(P, c)
+        return _pick(mc, _floats(c1)), c1
+
     def tangent_step(self, mP, mc, x):
         """One step of ``(P, c, dP, dc)``: the carry and one column of its tangent (the
         float leaves flagged in ``mc``; a `FRAME` leaf's as three numbers)."""
         P, c, dP, dc = x
-
-        def step(P, c):
-            c1 = self.step(P, c)
-            return _pick(mc, _floats(c1)), c1
-
-        g, Pm, cm = self._masked(step, mP, mc, P, c)
+        g, Pm, cm = self._masked(functools.partial(self._step_masked, mc), mP, mc, P, c)
         fr = _frame_flags(mc)
         if any(fr):
             dc1, c1 = _frame_step(g, Pm, cm, dP, dc, fr)
@@ -246,20 +247,14 @@ class Programs(Loop):
                     obs = _pick(keep, jax.tree.leaves(self.observe(Pp, c1)))
                     return (_pick(mc, _floats(c1)), obs), c1
 
-                _, pull, c1 = jax.vjp(f, _pick(mP, pf), _pick(mc, _floats(c)), has_aux=True)
-                res, tree = jax.tree.flatten(pull)
-                packed, spec = _pack(res)
-                layout[:] = [tree, spec]
-                return c1, packed
+                return _packed_vjp(layout, f, _pick(mP, pf), _pick(mc, _floats(c)))
 
             _, packed = jax.lax.scan(forward, ck, jnp.arange(K))
-            tree, spec = layout
 
             def backward(carry, x):
                 lam, acc = carry
                 packed, ct = x
-                pull = jax.tree.unflatten(tree, _unpack(packed, spec))
-                gP, lam = pull((lam, ct))
+                gP, lam = _packed_pullback(layout, packed)((lam, ct))
                 return (lam, [a + g for a, g in zip(acc, gP, strict=True)]), None
 
             return jax.lax.scan(backward, carry, (packed, cts), reverse=True)[0], None
@@ -281,12 +276,6 @@ class Programs(Loop):
 
     # ---------------- adjoint from every step's residuals ----------------
 
-    def _step_masked(self, mc, P, c):
-        """One step as a function with output the carry's float leaves flagged in ``mc``,
-        and the whole carry as auxiliary output."""
-        c1 = self.step(P, c)
-        return _pick(mc, _floats(c1)), c1
-
     def fwd_residuals(self, mP, mc, layout: list, P, c0):
         """``((ys, cN), (res, cs))``: `fwd_array`'s run with what its discrete adjoint needs
         (`adj_residuals`): per step, the residuals of JAX's ``vjp`` of the step through the
@@ -301,11 +290,7 @@ class Programs(Loop):
 
         def one(c, _):
             g, Pm, cm = self._masked(functools.partial(self._step_masked, mc), mP, mc, P, c)
-            _, pull, c1 = jax.vjp(g, Pm, cm, has_aux=True)
-            leaves, tree = jax.tree.flatten(pull)
-            packed, spec = _pack(leaves)
-            layout[:] = [tree, spec]
-            return c1, packed
+            return _packed_vjp(layout, g, Pm, cm)
 
         def block(c, _):
             if self.save_every == 1:
@@ -325,7 +310,6 @@ class Programs(Loop):
         Per saved point, last first: the pullback of the observations flagged in ``keep``
         (whose cotangents ``ct_obs`` holds, one per saved point) at the saved carry, then
         the steps' pullbacks from their residuals."""
-        tree, spec = layout
         res, cs = saved
         pf = _floats(P)
 
@@ -334,7 +318,7 @@ class Programs(Loop):
 
         def step_back(carry, packed):
             lam, acc = carry
-            gP, lam = jax.tree.unflatten(tree, _unpack(packed, spec))(lam)
+            gP, lam = _packed_pullback(layout, packed)(lam)
             return (lam, [a + g for a, g in zip(acc, gP, strict=True)]), None
 
         def block(carry, x):
@@ -354,6 +338,22 @@ class Programs(Loop):
         gP = _fill(mP, acc, [jnp.zeros_like(p) for p in pf])
         cf = _floats(jax.tree.map(lambda a: a[0], cs))
         return gP, _fill(mc, lam, [jnp.zeros_like(c) for c in cf])
+
+
+def _packed_vjp(layout: list, g, *primals):
+    """``(aux, packed)``: JAX's ``vjp`` of ``g`` (``-> (out, aux)``) at ``primals``, with its
+    pullback's residuals packed (`_pack`); ``layout`` receives their tree and packing."""
+    _, pull, aux = jax.vjp(g, *primals, has_aux=True)
+    leaves, tree = jax.tree.flatten(pull)
+    packed, spec = _pack(leaves)
+    layout[:] = [tree, spec]
+    return aux, packed
+
+
+def _packed_pullback(layout: list, packed):
+    """The pullback whose residuals `_packed_vjp` packed into ``packed``."""
+    tree, spec = layout
+    return jax.tree.unflatten(tree, _unpack(packed, spec))
 
 
 def _pack(leaves: list) -> tuple[list, list]:

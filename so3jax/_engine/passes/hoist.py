@@ -174,22 +174,16 @@ def _hoisted(loop: Callable, *args, xs_from: int | None = None):
         )
         return loop(*args)
     closed, shape = jax.make_jaxpr(loop, return_shape=True)(*args)
+    hoisted, why = closed, None
     if _largest_inner(closed.jaxpr) * runs >= policy.hoist_max_inner:
-        _plan.note(
-            "hoisting", hoisted=False, runs=runs, why="an array over the policy's hoist_max_inner"
-        )
-        outs = jex_core.jaxpr_as_fun(closed)(*jax.tree.leaves(args))
-        return jax.tree.unflatten(jax.tree.structure(shape), outs)
-    hoisted = closed
-    if not _hoistable(closed.jaxpr, runs, reductions) and _hoistable(closed.jaxpr, 0):
-        hoisted = _unrolled(closed)  # only reductions stand in the way: write them out
-    if not _hoistable(hoisted.jaxpr, runs, reductions):  # run the traced loop, not again
-        _plan.note(
-            "hoisting",
-            hoisted=False,
-            runs=runs,
-            why="a primitive or reduction XLA's older emitter refuses",
-        )
+        why = "an array over the policy's hoist_max_inner"
+    else:
+        if not _hoistable(closed.jaxpr, runs, reductions) and _hoistable(closed.jaxpr, 0):
+            hoisted = _unrolled(closed)  # only reductions stand in the way: write them out
+        if not _hoistable(hoisted.jaxpr, runs, reductions):
+            why = "a primitive or reduction XLA's older emitter refuses"
+    if why is not None:  # run the traced loop, not again
+        _plan.note("hoisting", hoisted=False, runs=runs, why=why)
         outs = jex_core.jaxpr_as_fun(closed)(*leaves)
         return jax.tree.unflatten(jax.tree.structure(shape), outs)
     _plan.note("hoisting", hoisted=True, runs=runs, unrolled=hoisted is not closed)
