@@ -86,3 +86,37 @@ def test_closed_over_values_are_operands():
     np.testing.assert_allclose(g(3.0, jnp.ones(4)), 3.0 * f(1.0, jnp.ones(4)))
     grad = jax.grad(lambda x: jnp.sum(g(3.0, x)))(jnp.ones(4))
     np.testing.assert_allclose(grad, 3.0 * f_transpose(1.0, jnp.ones(3)))
+
+
+def test_a_map_with_its_output_shapes_is_traced_only_where_it_is_evaluated():
+    """With ``out_shapes`` the map is traced where the call is evaluated (forward mode, a
+    batch of values), never under reverse mode alone, which needs only the transpose; the
+    results are those of the call without it. A wrong shape, or a map that closes over a
+    traced value, raises a ValueError naming the contract."""
+    traced = []
+
+    def fun(r, x):
+        traced.append(1)
+        return f(r, x)
+
+    shapes = jax.ShapeDtypeStruct((3,), jnp.float64)
+
+    def lazy(r, x, fun=fun, shapes=shapes):
+        return linear_call(fun, f_transpose, r, x, out_shapes=shapes)
+
+    r, x, ct = 1.5, jnp.arange(4.0), jnp.arange(3.0)
+    (g,) = jax.jit(lambda x: jax.vjp(lambda x: lazy(r, x), x)[1](ct))(x)
+    np.testing.assert_allclose(g, f_transpose(r, ct))
+    rs, xs = jnp.array([1.0, 2.0]), jnp.stack([x, 2 * x])
+    batched = jax.jit(jax.vmap(lambda r, x: jax.grad(lambda x: lazy(r, x) @ ct)(x)))(rs, xs)
+    np.testing.assert_allclose(batched, jnp.stack([f_transpose(1.0, ct), f_transpose(2.0, ct)]))
+    assert not traced  # reverse mode, batched or not, never traced the map
+    np.testing.assert_allclose(jax.jit(lambda x: lazy(r, x))(x), f(r, x))
+    _, dy = jax.jvp(lambda x: lazy(r, x), (x,), (jnp.ones(4),))
+    np.testing.assert_allclose(dy, f(r, jnp.ones(4)))
+    np.testing.assert_allclose(jax.vmap(lazy)(rs, xs), jax.vmap(f)(rs, xs))
+    assert traced
+    with pytest.raises(ValueError, match="out_shapes"):
+        lazy(r, x, shapes=jax.ShapeDtypeStruct((4,), jnp.float64))
+    with pytest.raises(ValueError, match="traced value"):
+        jax.jit(lambda s, x: lazy(r, x, fun=lambda r, x: s * f(r, x)))(2.0, x)

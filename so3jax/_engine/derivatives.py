@@ -117,7 +117,9 @@ class Autodiff(Strategy):
         t_leaves, nz = _tangent_leaves(tangents)
         n = sum(math.prod(jnp.shape(t)) for t, z in zip(t_leaves, nz, strict=True) if z)
         _plan.note("derivative", strategy=self.name, scalars=n, why=self.why)
-        t_leaves, nz = settle.carry_tangents(loop.step, primals, p_leaves, t_leaves, nz)
+        t_leaves, nz = settle.carry_tangents(
+            loop.step, primals, p_leaves, t_leaves, nz, loop.jaxprs
+        )
         out, tan = _jvp_through(loop.fwd_checkpointed, treedef, p_leaves, t_leaves, nz)
         return _batched_with(out, primals), tan  # batched as the run's forward programs are
 
@@ -133,7 +135,9 @@ class OnePassJacobian(Strategy):
         P, c0 = primals
         nz, lin = _nonzero(primals, tangents)
         n_pf = len(_floats(P))
-        mP, mc, elements = _tangent_masks(loop.step, P, c0, nz[:n_pf], nz[n_pf:], elements=True)
+        mP, mc, elements = _tangent_masks(
+            loop.step, P, c0, nz[:n_pf], nz[n_pf:], elements=True, cache=loop.jaxprs
+        )
         _plan.note(
             "derivative",
             strategy=self.name,
@@ -176,14 +180,15 @@ class CheckpointedAdjoint(Strategy):
         n = sum(math.prod(jnp.shape(t)) for t, z in zip(t_leaves, nz, strict=True) if z)
         _plan.note("derivative", strategy=self.name, scalars=n, why=self.why)
         real = list(nz)
-        t_leaves, nz = settle.carry_tangents(loop.step, primals, p_leaves, t_leaves, nz)
+        t_leaves, nz = settle.carry_tangents(
+            loop.step, primals, p_leaves, t_leaves, nz, loop.jaxprs
+        )
         P, c0 = primals
         floats = [_is_float(x) for x in p_leaves]
         nz = [z and f for z, f in zip(nz, floats, strict=True)]
         n_P = len(jax.tree.leaves(P))
-        mP, mc = _tangent_masks(
-            loop.step, P, c0, _pick(floats[:n_P], nz[:n_P]), _pick(floats[n_P:], nz[n_P:])
-        )
+        nz_P, nz_c = _pick(floats[:n_P], nz[:n_P]), _pick(floats[n_P:], nz[n_P:])
+        mP, mc = _tangent_masks(loop.step, P, c0, nz_P, nz_c, cache=loop.jaxprs)
         out, saved, layout = _adjoint_forward(loop, fwd, mP, mc, P, c0)
         out_nz = [_is_float(o) for o in jax.tree.leaves(out)]
         n_ys = len(jax.tree.leaves(out[0]))
@@ -201,8 +206,19 @@ class CheckpointedAdjoint(Strategy):
         # this many scalars ran about as fast and compiled several times longer.
         plain = _float_tangent(loop.fwd_checkpointed, treedef, nz, out_nz)
         xs, ts = _pick(nz, p_leaves), _pick(nz, t_leaves)
+        shapes = [
+            jax.ShapeDtypeStruct(jnp.shape(o), o.dtype) for o in _pick(out_nz, jax.tree.leaves(out))
+        ]
         tan = _linear_tangent(
-            plain, plain, xs, p_leaves, ts, _pick(nz, real), adjoint=adjoint, extra=saved
+            plain,
+            plain,
+            xs,
+            p_leaves,
+            ts,
+            _pick(nz, real),
+            adjoint=adjoint,
+            extra=saved,
+            out_shapes=shapes,
         )
         return out, _with_float0(out, out_nz, tan)
 

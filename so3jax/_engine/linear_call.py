@@ -57,6 +57,7 @@ def linear_call(
     linear_args,
     symbolic_zeros=False,
     differentiable: Callable | None = None,
+    out_shapes=None,
 ):
     """``fun(residual_args, linear_args)``, linear in ``linear_args``, transposed by
     ``fun_transpose(residual_args, cotangents)``; batches under ``vmap``.
@@ -75,6 +76,11 @@ def linear_call(
       differentiates and batches itself: what a second derivative differentiates (the
       call's, and its transpose's as JAX's transpose of it) where the residuals move.
       Default: ``fun`` as traced.
+    - `out_shapes`: ``fun``'s output as ``jax.ShapeDtypeStruct`` leaves. Given, ``fun`` is
+      traced when the call is evaluated, lowered or differentiated again, not when it is
+      bound: reverse mode, which needs only ``fun_transpose``, never traces it. ``fun``
+      must then close over no traced value (`ValueError` when it is traced), and a wrong
+      shape raises there too.
 
     **Returns:** ``fun(residual_args, linear_args)``.
     """
@@ -115,8 +121,50 @@ def linear_call(
             return jax.tree.leaves(out)
 
     flat_transpose.symbolic_zeros = bool(symbolic_zeros)
-    out = _bind(flat_fun, res, lin, flat_transpose, flat_diff)
-    return jax.tree.unflatten(out_tree[0], out)
+    if out_shapes is None:
+        out = _bind(flat_fun, res, lin, flat_transpose, flat_diff)
+        return jax.tree.unflatten(out_tree[0], out)
+    shapes, tree = jax.tree.flatten(out_shapes)
+    out_tree.append(tree)
+    callee = _Callee(None, flat_fun, [_aval(x) for x in (*res, *lin)], [_aval(x) for x in shapes])
+    out = _bind_callee(callee, [], res, lin, flat_transpose, flat_diff)
+    return jax.tree.unflatten(tree, out)
+
+
+def _aval(x):
+    return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
+
+
+class _Callee:
+    """The callee of a call: a jaxpr traced where the call is bound, or a function traced at
+    its first use (`linear_call`'s ``out_shapes``) whose output shapes are given."""
+
+    def __init__(self, jaxpr, fn=None, in_avals=(), out_avals=()):
+        self._jaxpr, self._fn, self._in_avals = jaxpr, fn, in_avals
+        self._consts: list = []
+        self.out_avals = (
+            [jax.typeof(a) for a in out_avals] if jaxpr is None else [v.aval for v in jaxpr.outvars]
+        )
+
+    @property
+    def lazy(self) -> bool:
+        """Whether the callee is still to be traced."""
+        return self._jaxpr is None
+
+    def closed(self, consts) -> ClosedJaxpr:
+        """The callee with ``consts`` (the call's constant operands), or its own if traced
+        late (it closes over no traced value: none to pass)."""
+        if self._jaxpr is None:
+            closed = jax.make_jaxpr(self._fn)(*self._in_avals)
+            if any(isinstance(c, jax.core.Tracer) for c in closed.consts):
+                raise ValueError(
+                    "linear_call: with out_shapes, fun must not close over a traced value"
+                )
+            got = [(v.aval.shape, v.aval.dtype) for v in closed.jaxpr.outvars]
+            if got != [(a.shape, a.dtype) for a in self.out_avals]:
+                raise ValueError(f"linear_call: fun's output {got} is not out_shapes")
+            self._jaxpr, self._consts = closed.jaxpr, list(closed.consts)
+        return ClosedJaxpr(self._jaxpr, list(consts) or self._consts)
 
 
 def _bind(flat_fun: Callable, res: list, lin: list, transpose: Callable, diff=None) -> list:
@@ -125,14 +173,17 @@ def _bind(flat_fun: Callable, res: list, lin: list, transpose: Callable, diff=No
     ``diff(*res, *lin)``: the same map, for second derivatives (`linear_call`'s
     ``differentiable``), kept only where it closes over no traced value."""
     closed = jax.make_jaxpr(flat_fun)(*res, *lin)
-    consts = list(closed.consts)
+    return _bind_callee(_Callee(closed.jaxpr), list(closed.consts), res, lin, transpose, diff)
+
+
+def _bind_callee(callee: _Callee, consts: list, res: list, lin: list, transpose, diff) -> list:
     if diff is not None and any(isinstance(c, jax.core.Tracer) for c in consts):
         diff = None
     return linear_call_p.bind(
         *consts,
         *res,
         *lin,
-        jaxpr=closed.jaxpr,
+        jaxpr=callee,
         n_consts=len(consts),
         n_res=len(res),
         transpose=transpose,
@@ -140,8 +191,8 @@ def _bind(flat_fun: Callable, res: list, lin: list, transpose: Callable, diff=No
     )
 
 
-def _eval(jaxpr, consts, *args):
-    return jaxpr_as_fun(ClosedJaxpr(jaxpr, list(consts)))(*args)
+def _eval(callee: _Callee, consts, *args):
+    return jaxpr_as_fun(callee.closed(consts))(*args)
 
 
 def _impl(*args, jaxpr, n_consts, n_res, transpose, diff):
@@ -151,7 +202,7 @@ def _impl(*args, jaxpr, n_consts, n_res, transpose, diff):
 
 def _abstract_eval(*args, jaxpr, n_consts, n_res, transpose, diff):
     del args, n_consts, n_res, transpose, diff
-    return [v.aval for v in jaxpr.outvars]
+    return jaxpr.out_avals
 
 
 def _jvp(primals, tangents, *, jaxpr, n_consts, n_res, transpose, diff):
@@ -187,8 +238,8 @@ def _transpose(cts, *args, jaxpr, n_consts, n_res, transpose, diff):
     zero = [type(ct) is ad.Zero for ct in cts]
     if not getattr(transpose, "symbolic_zeros", False):
         cts = [
-            jnp.zeros(v.aval.shape, v.aval.dtype) if z else ct
-            for ct, z, v in zip(cts, zero, jaxpr.outvars, strict=True)
+            jnp.zeros(v.shape, v.dtype) if z else ct
+            for ct, z, v in zip(cts, zero, jaxpr.out_avals, strict=True)
         ]
         zero = [False] * len(cts)
     res = list(res)
@@ -208,7 +259,7 @@ def _transpose(cts, *args, jaxpr, n_consts, n_res, transpose, diff):
     t_diff = None
     if diff is not None:
         lin_avals = [x.aval for x in lin]
-        out_avals = [v.aval for v in jaxpr.outvars]
+        out_avals = jaxpr.out_avals
 
         def t_diff(*a):  # JAX's transpose of ``diff``, linear in its last arguments
             res_leaves, full = list(a[:n_res]), with_nones(a[n_res:])
@@ -226,7 +277,7 @@ def _transpose(cts, *args, jaxpr, n_consts, n_res, transpose, diff):
 
 def _batch(args, dims, *, jaxpr, n_consts, n_res, transpose, diff):
     params = dict(jaxpr=jaxpr, n_consts=n_consts, n_res=n_res, transpose=transpose, diff=diff)
-    n_out = len(jaxpr.outvars)
+    n_out = len(jaxpr.out_avals)
     if all(d is None for d in dims):
         return linear_call_p.bind(*args, **params), [None] * n_out
     size = next(a.shape[d] for a, d in zip(args, dims, strict=True) if d is not None)
@@ -251,6 +302,10 @@ def _batch(args, dims, *, jaxpr, n_consts, n_res, transpose, diff):
     if diff is not None and all(d is None for d in dims[:n_consts]):
         b_diff = jax.vmap(diff, in_axes=(*res_axes, *[0] * len(lin)))
         b_diff = _dropping_consts(b_diff, n_consts)
+    if jaxpr.lazy:  # still traced at its first use, batched
+        outs = [jax.ShapeDtypeStruct((size, *a.shape), a.dtype) for a in jaxpr.out_avals]
+        callee = _Callee(None, batched, [_aval(x) for x in (*pre, *lin)], outs)
+        return _bind_callee(callee, [], pre, lin, batched_transpose, b_diff), [0] * n_out
     out = _bind(batched, pre, lin, batched_transpose, b_diff)
     return out, [0] * n_out
 

@@ -55,6 +55,7 @@ class Loop:
         self.n, self.save_every, self.n_save = n_steps, save_every, n_steps // save_every
         self.K = min(K, n_steps)
         self.S = -(-n_steps // self.K)
+        self.jaxprs: dict = {}  # the step's, by argument shapes (`_tangent_masks`' cache)
 
     def _repeat(self, fn, x):
         """``save_every`` applications of ``fn`` under ``lax.scan``."""

@@ -133,7 +133,9 @@ def _mask_eval(jaxpr, ins: list) -> list:
     return [read(v) for v in jaxpr.outvars]
 
 
-def _tangent_masks(step, P, c0, nz_P: list, nz_c: list, elements: bool = False) -> tuple:
+def _tangent_masks(
+    step, P, c0, nz_P: list, nz_c: list, elements: bool = False, cache: dict | None = None
+) -> tuple:
     """Float leaves of ``P`` and of the carry whose tangents can be nonzero.
 
     ``nz_P``, ``nz_c`` flag the float leaves with nonzero input tangents. A
@@ -146,6 +148,9 @@ def _tangent_masks(step, P, c0, nz_P: list, nz_c: list, elements: bool = False) 
     element mask of what can have a nonzero tangent, from the same fixed point run
     on elements. It is finer than the leaf flags: a body and a reference attitude
     stacked in one carry leaf are told apart (`Programs.obs_kinds`).
+
+    ``cache``: the step's jaxprs by the shapes of ``(P, c0)`` (`Loop.jaxprs`), so that a
+    loop's step is traced once for all its masks.
     """
     pl, pt = jax.tree.flatten(P)
     cl, ct = jax.tree.flatten(c0)
@@ -161,7 +166,11 @@ def _tangent_masks(step, P, c0, nz_P: list, nz_c: list, elements: bool = False) 
         return [next(it) if _is_float(x) else False for x in leaves]
 
     dep_P, dep_c = expand(pl, nz_P), expand(cl, nz_c)
-    jaxpr = _abstract_jaxpr(one_step, pl + cl)  # traced once for the whole fixed point
+    key = (pt, ct, tuple((jnp.shape(x), jnp.result_type(x)) for x in pl + cl))
+    cache = {} if cache is None else cache
+    if key not in cache:  # traced once for the whole fixed point
+        cache[key] = _abstract_jaxpr(one_step, pl + cl)
+    jaxpr = cache[key]
     while True:
         out = _jaxpr_depends(jaxpr, pl + cl, dep_P + dep_c)
         new = [a or b for a, b in zip(dep_c, out, strict=True)]

@@ -21,7 +21,7 @@ import numpy as np
 
 from . import linear_call as _linear_call, plan as _plan
 from .linear_call import linear_call
-from .policy import current
+from .policy import current, using
 from .trees import (
     _batched_with,
     _fill,
@@ -74,6 +74,7 @@ def _linear_tangent(
     max_columns=None,
     adjoint=None,
     extra=None,
+    out_shapes=None,
 ):
     """``fast(xs, ts, others)``, linear in ``ts``, transposable and differentiable.
 
@@ -91,14 +92,19 @@ def _linear_tangent(
     cotangent that is a symbolic zero (`linear_call`'s ``symbolic_zeros``); a second
     derivative through it (reverse over reverse) differentiates JAX's transpose of
     ``plain`` instead (`linear_call`'s ``differentiable``). ``extra``: residuals only
-    ``adjoint`` reads, as ``res[2]`` (the map does not depend on them).
+    ``adjoint`` reads, as ``res[2]`` (the map does not depend on them). ``out_shapes``
+    (with ``adjoint``): the tangent's shapes, so that ``fast`` is traced only where the
+    tangent is evaluated (forward mode), not under ``grad`` (`linear_call`'s
+    ``out_shapes``), under the policy active here.
     """
     shapes = [jax.ShapeDtypeStruct(jnp.shape(t), jnp.result_type(t)) for t in ts]
     n_real = sum(math.prod(s.shape) for s, r in zip(shapes, real, strict=True) if r)
     max_columns = current().forward_jacobian_max if max_columns is None else max_columns
+    active = current()
 
     def callee(res, ts):
-        return fast(res[0], ts, res[1])
+        with using(active):  # (traced later with ``out_shapes``)
+            return fast(res[0], ts, res[1])
 
     def transpose(res, cts):
         if 0 < n_real <= max_columns:
@@ -121,6 +127,7 @@ def _linear_tangent(
                 ts,
                 symbolic_zeros=True,
                 differentiable=differentiable,
+                out_shapes=out_shapes,
             )
         return linear_call(callee, transpose, (xs, others), ts)
 

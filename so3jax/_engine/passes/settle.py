@@ -56,13 +56,14 @@ def batched_carries(body, split: tuple, ins: list, bs: list, batch: Callable):
     return ins, bs
 
 
-def carry_tangents(step, primals, p_leaves, t_leaves, nz) -> tuple[list, list]:
+def carry_tangents(step, primals, p_leaves, t_leaves, nz, cache=None) -> tuple[list, list]:
     """``(t_leaves, nz)`` with a zero tangent, not a symbolic one, for each initial carry
     leaf that a step gives a nonzero tangent (`_tangent_masks`), flagged nonzero.
 
     ``primals`` is ``(P, c0)``, ``p_leaves`` its leaves, ``t_leaves`` their tangents and
     ``nz`` whether each is nonzero. The zero is computed from an input tangent
     (`_zero_like_tangent`), so that ``grad``'s partial evaluator sees it as unknown too.
+    ``cache``: `_tangent_masks`'.
     """
     if not current().on("settle"):
         return t_leaves, nz
@@ -73,7 +74,7 @@ def carry_tangents(step, primals, p_leaves, t_leaves, nz) -> tuple[list, list]:
     sources = [t for t, z, f in zip(t_leaves, nz, floats, strict=True) if z and f and t.size]
     if not sources or all(nz_c):
         return t_leaves, nz
-    _, mc = _tangent_masks(step, P, c0, nz_P, nz_c)
+    _, mc = _tangent_masks(step, P, c0, nz_P, nz_c, cache=cache)
     it = iter(mc)
     t_leaves, nz = list(t_leaves), list(nz)
     moved = 0
