@@ -164,7 +164,7 @@ class CheckpointedAdjoint(Strategy):
     forward pass, while they fit the policy's ``adjoint_residual_bytes`` per run (linear
     in ``n_steps``; one backward loop, `Programs.adj_residuals`); past it the carries at
     the starts of checkpointed segments (``~ sqrt(n_steps)``), each segment replayed
-    backward (`Programs.adj_array`). Observations a cost does not
+    backward (`Programs.adj_segments`). Observations a cost does not
     use are left out of the backward pass, as JAX's transpose leaves them out. The
     ``linear_call``'s own derivative (``jax.hessian``, ``jvp`` of ``grad``) is JAX's
     ``jvp`` of the checkpointed program (`_linear_tangent`'s rule). ``why``: for
@@ -228,11 +228,10 @@ def _adjoint_forward(loop: Programs, fwd: Callable, mP, mc, P, c0):
 
     Every step's residuals (`Programs.fwd_residuals`; ``layout`` their packing) while
     they take at most the policy's ``adjoint_residual_bytes`` per run; else the carries
-    at the starts of checkpointed segments (`Programs.fwd_segments`, ``layout`` ``None``),
-    or nothing where the segments do not fit the save blocks (`Programs.adj_array`
-    then computes them)."""
-    steps, budget = loop.n_save * loop.save_every, current().adjoint_residual_bytes
-    if budget > 0 and steps == loop.n:  # the residuals' size is known once they are traced
+    at the starts of checkpointed segments (`Programs.fwd_segments`, ``layout`` ``None``;
+    nothing for one segment)."""
+    steps, budget = loop.n, current().adjoint_residual_bytes
+    if budget > 0:  # the residuals' size is known once they are traced
         layout: list = []
         run = functools.partial(loop.fwd_residuals, mP, mc, layout)
         with _plan.deferred() as pending:  # dropped if the residuals are too large
@@ -242,13 +241,12 @@ def _adjoint_forward(loop: Programs, fwd: Callable, mP, mc, P, c0):
             _plan.extend(pending)
             _plan.note("adjoint", saved="residuals", bytes_per_step=per_step, steps=steps)
             return out, saved, layout
-    if loop.S > 1 and loop.K % loop.save_every == 0:
-        # the run and the adjoint's checkpoints in one pass (array layout, as the
-        # adjoint): one forward pass fewer than the run and then `Programs.checkpoints`
+    if loop.segments > 1:  # the run and the adjoint's checkpoints in one pass (array layout)
         out, ck = _dual(loop.fwd_segments, loop.fwd_segments, "adjoint")(P, c0)
     else:
         out, ck = fwd(P, c0), None
-    _plan.note("adjoint", saved="checkpoints", segments=loop.S, steps_per_segment=loop.K)
+    K = loop.blocks_per_segment * loop.save_every
+    _plan.note("adjoint", saved="checkpoints", segments=loop.segments, steps_per_segment=K)
     return out, ck, None
 
 
@@ -258,7 +256,7 @@ def _adjoint_transpose(loop: Programs, mP, mc, layout, P, c0, avals, ct_ys, ct_c
     symbolic zero: an observation the cost does not use is left out of the backward pass.
     ``avals``: the shapes of the run's ``(ys, cN)``; ``saved`` and ``layout``: what
     `_adjoint_forward` returned (`Programs.adj_residuals` reads residuals,
-    `Programs.adj_array` checkpoints)."""
+    `Programs.adj_segments` checkpoints)."""
     keep = tuple(c is not None for c in ct_ys)
     kept = [c for c in ct_ys if c is not None]
     ct_cN = [
@@ -271,7 +269,7 @@ def _adjoint_transpose(loop: Programs, mP, mc, layout, P, c0, avals, ct_ys, ct_c
         adj = functools.partial(loop.adj_residuals, mP, mc, keep, layout)
         gP, gc = _dual(adj, adj, "adjoint")(P, saved, kept, ct_cN)
     else:
-        adj = functools.partial(loop.adj_array, mP, mc, keep)
+        adj = functools.partial(loop.adj_segments, mP, mc, keep)
         gP, gc = _dual(adj, adj, "adjoint")(P, c0, kept, ct_cN, saved)
     return list(gP), list(gc)
 

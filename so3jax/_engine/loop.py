@@ -54,8 +54,17 @@ class Loop:
         self.step, self.observe = step, observe
         self.n, self.save_every, self.n_save = n_steps, save_every, n_steps // save_every
         self.K = min(K, n_steps)
-        self.S = -(-n_steps // self.K)
         self.jaxprs: dict = {}  # the step's, by argument shapes (`_tangent_masks`' cache)
+
+    @property
+    def blocks_per_segment(self) -> int:
+        """Save blocks per checkpointed segment: about ``K`` steps (`_segment_blocks`)."""
+        return _segment_blocks(self.n_save, max(1, round(self.K / self.save_every)))
+
+    @property
+    def segments(self) -> int:
+        """Checkpointed segments: the last one padded with blocks that leave the carry alone."""
+        return -(-self.n_save // self.blocks_per_segment)
 
     def _repeat(self, fn, x):
         """``save_every`` applications of ``fn`` under ``lax.scan``."""
@@ -92,8 +101,7 @@ class Loop:
         ``~ n / K + K`` steps instead of ``n``. The last segment is padded
         with blocks that leave the carry alone.
         """
-        m = _segment_blocks(self.n_save, max(1, round(self.K / self.save_every)))
-        ys, cN, _ = self._in_segments(P, c0, m, checkpoint=True)
+        ys, cN, _ = self._in_segments(P, c0, self.blocks_per_segment, checkpoint=True)
         return ys, cN
 
     def _in_segments(self, P, c0, m: int, checkpoint: bool = False, starts: bool = False):

@@ -5,10 +5,10 @@
 - the Jacobian program (the primal once and ``n`` unit tangents batched over it; its
   scalarized layout, with attitude tangents as three numbers, is the ``"scalarize"``
   pass's, `so3jax._engine.passes.scalarized`);
-- the discrete adjoint: a backward scan over every step's residuals, kept by the forward
-  pass (`fwd_residuals`, `adj_residuals`), or over checkpointed segments of ``jax.vjp``
-  of a segment's steps (`fwd_segments`, `adj_array`), through the differentiated
-  leaves alone.
+- the discrete adjoint: a backward scan over save blocks through the differentiated
+  leaves alone, from every step's residuals kept by the forward pass (`fwd_residuals`,
+  `adj_residuals`) or replayed from checkpointed segments (`fwd_segments`,
+  `adj_segments`).
 
 Each equals JAX's own derivative of the reference to round-off
 (``tests/test_engine.py``, ``tests/passes/``). References: A. Griewank, A. Walther,
@@ -60,10 +60,13 @@ class Programs(Loop):
 
         return g, _pick(mP, pf), _pick(mc, cf)
 
-    def _step_masked(self, mc, P, c):
+    def _step_masked(self, mc, P, c, valid=None):
         """One step as a function with output the carry's float leaves flagged in ``mc``,
-        and the whole carry as auxiliary output."""
+        and the whole carry as auxiliary output; with ``valid`` false, no step (the padded
+        tail of the last segment)."""
         c1 = self.step(P, c)
+        if valid is not None:
+            c1 = jax.tree.map(lambda a, b: jnp.where(valid, a, b), c1, c)
         return _pick(mc, _floats(c1)), c1
 
     def tangent_step(self, mP, mc, x):
@@ -171,147 +174,44 @@ class Programs(Loop):
         return c1, dc1
 
     # ---------------- adjoint (reverse mode) ----------------
+    #
+    # The discrete adjoint runs save blocks backward, last first: at each the pullback of
+    # the observations a cost uses (at the carry after the block), then the pullbacks of
+    # the block's steps from their `jax.vjp` residuals. Those residuals are kept by the
+    # run's forward pass for every step (`fwd_residuals`), or replayed segment by segment
+    # from the carries at the segments' starts (`fwd_segments`, `adj_segments`). Only the
+    # float leaves flagged in ``mP`` and ``mc`` (`_tangent_masks`) are differentiated: the
+    # others have a zero tangent, and their entries of the gradients are zeros.
 
-    def _masked_step(self, P, c, j):
-        """One step, or nothing past the end (the last segment is padded)."""
-        c1 = self.step(P, c)
-        return jax.tree.map(lambda a, b: jnp.where(j < self.n, a, b), c1, c)
+    def _replay(self, mP, mc, layout: list, P, c0, first, n_blocks: int, observe=True):
+        """``(cN, (ys, res, cs))``: ``n_blocks`` save blocks from ``c0`` (block indices from
+        ``first``; those past `n_save` leave the carry alone), keeping per step the residuals
+        of JAX's ``vjp`` of the step, packed (`_packed_vjp`; ``layout`` receives their
+        packing), stacked ``(n_blocks, save_every, ...)``; per block the observations
+        (``observe``) and the carry after it."""
+        padded = self.n_save % n_blocks != 0
 
-    def _step_cts(self, ct_obs):
-        """The observation cotangents per step, ``(S, K, ...)`` per leaf: a saved point's
-        after the step that reaches it, zero after every other step and past the end."""
-
-        def per_step(a):
-            if self.save_every > 1:
-                pad = jnp.zeros((self.n_save, self.save_every - 1) + a.shape[1:], a.dtype)
-                a = jnp.concatenate([pad, a[:, None]], axis=1).reshape((self.n,) + a.shape[1:])
-            tail = jnp.zeros((self.S * self.K - self.n,) + a.shape[1:], a.dtype)
-            a = jnp.concatenate([a, tail])
-            return a.reshape((self.S, self.K) + a.shape[1:])
-
-        return jax.tree.map(per_step, ct_obs)
-
-    def checkpoints(self, P, c0):
-        """The carries at the start of each of the ``S`` segments of ``K`` steps."""
-        K = self.K
-
-        def advance(c, s):
-            def one(c, i):
-                return self._masked_step(P, c, s * K + i), None
-
-            return jax.lax.scan(one, c, jnp.arange(K))[0], c
-
-        return jax.lax.scan(advance, c0, jnp.arange(self.S))[1]
-
-    def fwd_segments(self, P, c0):
-        """``((ys, cN), ck)``: `fwd_array`'s run and the carries at the start of each of the
-        ``S`` segments of ``K`` steps (`checkpoints`), in one pass: the discrete adjoint's
-        forward pass (`so3jax._engine.derivatives.CheckpointedAdjoint`). Needs ``K`` a
-        multiple of ``save_every``; the last segment is padded with blocks that leave the
-        carry alone."""
-        ys, cN, ck = self._in_segments(P, c0, self.K // self.save_every, starts=True)
-        return (ys, cN), ck
-
-    def adj_array(self, mP, mc, keep, P, c0, ct_obs, ct_cN, ck=None):
-        """The discrete adjoint: ``(gP, gc0)``, the cotangents of the float leaves of ``P``
-        and ``c0`` given those of the observations and of the final carry.
-
-        ``ct_obs`` holds the cotangents of the observation leaves flagged in ``keep``
-        only (one flag per leaf): the others' are zero, and their part of the backward
-        pass is left out. ``ct_cN``: one per float leaf of the final carry.
-
-        The carries at the segments' starts, ``ck``, come from the forward pass
-        (`fwd_segments`) or are computed first (`checkpoints`); then, last segment
-        first, one loop runs the segment's ``K`` steps, each (with its observations)
-        through JAX's ``vjp`` as a function of the float leaves flagged in ``mP`` and
-        ``mc`` (`_tangent_masks`) only, and a backward loop applies their pullbacks. The
-        other leaves have a zero tangent, so no cotangent reaching them contributes, and
-        their entries of ``gP``, ``gc0`` are zeros. Per-step observation cotangents enter
-        as the backward loop's inputs (`_step_cts`). A step's residuals pass between the
-        loops packed, one vector per dtype (`_pack`): XLA compiles a kernel for each
-        stacked array in each loop (``benchmarks/difftune.py``). Memory ``~ K + n / K``
-        steps.
-        """
-        K = self.K
-        pf, cf = _floats(P), _floats(c0)
-
-        def segment(carry, x):
-            s, ck, cts = x
-            layout = []  # the residuals' tree and packing: found where the steps are traced
-
-            def forward(c, i):
-                def f(Pm, cm):
-                    Pp = _with_floats(P, _fill(mP, Pm, pf))
-                    cc = _with_floats(c, _fill(mc, cm, _floats(c)))
-                    c1 = self._masked_step(Pp, cc, s * K + i)
-                    obs = _pick(keep, jax.tree.leaves(self.observe(Pp, c1)))
-                    return (_pick(mc, _floats(c1)), obs), c1
-
-                return _packed_vjp(layout, f, _pick(mP, pf), _pick(mc, _floats(c)))
-
-            _, packed = jax.lax.scan(forward, ck, jnp.arange(K))
-
-            def backward(carry, x):
-                lam, acc = carry
-                packed, ct = x
-                gP, lam = _packed_pullback(layout, packed)((lam, ct))
-                return (lam, [a + g for a, g in zip(acc, gP, strict=True)]), None
-
-            return jax.lax.scan(backward, carry, (packed, cts), reverse=True)[0], None
-
-        acc0 = [jnp.zeros_like(p) for p in _pick(mP, pf)]
-        carry0 = (_pick(mc, ct_cN), acc0)
-        cts = self._step_cts(list(ct_obs))
-        if self.S == 1:
-            # One segment: its loops stand alone (XLA's older CPU emitter aborts on a loop
-            # over one segment hoisted whole: "All or none of the slices should have an
-            # explicit index").
-            (lam, acc), _ = segment(carry0, (0, c0, jax.tree.map(lambda a: a[0], cts)))
-        else:
-            ck = self.checkpoints(P, c0) if ck is None else ck
-            xs = (jnp.arange(self.S), ck, cts)
-            (lam, acc), _ = jax.lax.scan(segment, carry0, xs, reverse=True)
-        gP = _fill(mP, acc, [jnp.zeros_like(p) for p in pf])
-        return gP, _fill(mc, lam, [jnp.zeros_like(c) for c in cf])
-
-    # ---------------- adjoint from every step's residuals ----------------
-
-    def fwd_residuals(self, mP, mc, layout: list, P, c0):
-        """``((ys, cN), (res, cs))``: `fwd_array`'s run with what its discrete adjoint needs
-        (`adj_residuals`): per step, the residuals of JAX's ``vjp`` of the step through the
-        float leaves flagged in ``mP`` and ``mc``, packed one vector per dtype (`_pack`),
-        stacked ``(n_save, save_every, ...)``; and the carry at every saved point
-        ``(n_save, ...)``, from which the observations' pullbacks are recomputed.
-
-        ``layout`` receives the residuals' tree and packing when the step is traced.
-        Memory: linear in ``n_steps``, the residuals of one step each (the policy's
-        ``adjoint_residual_bytes`` bounds it; `so3jax._engine.derivatives.CheckpointedAdjoint`).
-        """
-
-        def one(c, _):
-            g, Pm, cm = self._masked(functools.partial(self._step_masked, mc), mP, mc, P, c)
+        def one(j, c, _):
+            valid = j < self.n_save if padded else None
+            step = functools.partial(self._step_masked, mc, valid=valid)
+            g, Pm, cm = self._masked(step, mP, mc, P, c)
             return _packed_vjp(layout, g, Pm, cm)
 
-        def block(c, _):
+        def block(c, j):
             if self.save_every == 1:
-                c1, res = one(c, None)
+                c1, res = one(j, c, None)
                 res = jax.tree.map(lambda a: a[None], res)
             else:
-                c1, res = jax.lax.scan(one, c, None, length=self.save_every)
-            return c1, (self.observe(P, c1), res, c1)
+                c1, res = jax.lax.scan(functools.partial(one, j), c, None, length=self.save_every)
+            return c1, (self.observe(P, c1) if observe else None, res, c1)
 
-        cN, (ys, res, cs) = jax.lax.scan(block, c0, None, length=self.n_save)
-        return (ys, cN), (res, cs)
+        return jax.lax.scan(block, c0, first + jnp.arange(n_blocks))
 
-    def adj_residuals(self, mP, mc, keep, layout: list, P, saved, ct_obs, ct_cN):
-        """The discrete adjoint from `fwd_residuals`' ``saved`` residuals: ``(gP, gc0)`` as
-        `adj_array` gives them, in one backward loop with no forward pass replayed.
-
-        Per saved point, last first: the pullback of the observations flagged in ``keep``
-        (whose cotangents ``ct_obs`` holds, one per saved point) at the saved carry, then
-        the steps' pullbacks from their residuals."""
-        res, cs = saved
-        pf = _floats(P)
+    def _backward(self, mP, mc, keep, layout: list, P, res, cs, ct_obs, carry):
+        """``(lam, acc)`` after the pullbacks of `_replay`'s blocks (``res``, ``cs``), last
+        first, from ``carry``: ``lam`` the cotangent of the carry's flagged leaves, ``acc``
+        the gradient of the flagged parameters. ``ct_obs``: per block, the cotangents of
+        the observations flagged in ``keep`` (the others' part is left out)."""
 
         def observed(P, c):
             return _pick(keep, jax.tree.leaves(self.observe(P, c)))
@@ -332,12 +232,66 @@ class Programs(Loop):
                 return step_back((lam, acc), jax.tree.map(lambda a: a[0], res))
             return jax.lax.scan(step_back, (lam, acc), res, reverse=True)
 
-        acc0 = [jnp.zeros_like(p) for p in _pick(mP, pf)]
-        carry0 = (_pick(mc, ct_cN), acc0)
-        (lam, acc), _ = jax.lax.scan(block, carry0, (res, cs, list(ct_obs)), reverse=True)
+        return jax.lax.scan(block, carry, (res, cs, list(ct_obs)), reverse=True)[0]
+
+    def _gradients(self, mP, mc, P, c0, ct_cN, backward):
+        """``(gP, gc0)`` from ``backward((lam, acc)) -> (lam, acc)`` started at the final
+        carry's cotangents ``ct_cN`` (one per float leaf of the carry ``c0``)."""
+        pf, cf = _floats(P), _floats(c0)
+        lam, acc = backward((_pick(mc, ct_cN), [jnp.zeros_like(p) for p in _pick(mP, pf)]))
         gP = _fill(mP, acc, [jnp.zeros_like(p) for p in pf])
-        cf = _floats(jax.tree.map(lambda a: a[0], cs))
         return gP, _fill(mc, lam, [jnp.zeros_like(c) for c in cf])
+
+    def fwd_residuals(self, mP, mc, layout: list, P, c0):
+        """``((ys, cN), (res, cs))``: `fwd_array`'s run with what `adj_residuals` reads (every
+        step's residuals and the carry at every saved point, `_replay`). Memory: linear in
+        ``n_steps`` (the policy's ``adjoint_residual_bytes`` bounds it;
+        `so3jax._engine.derivatives.CheckpointedAdjoint`)."""
+        cN, (ys, res, cs) = self._replay(mP, mc, layout, P, c0, 0, self.n_save)
+        return (ys, cN), (res, cs)
+
+    def adj_residuals(self, mP, mc, keep, layout: list, P, saved, ct_obs, ct_cN):
+        """The discrete adjoint from `fwd_residuals`' ``saved``: ``(gP, gc0)``, the cotangents
+        of the float leaves of ``P`` and ``c0`` given ``ct_obs`` (one per saved point, for the
+        observation leaves flagged in ``keep`` only) and ``ct_cN`` (one per float leaf of
+        the final carry). One backward loop; nothing replayed."""
+        res, cs = saved
+        c0 = jax.tree.map(lambda a: a[0], cs)  # (its shapes only)
+        back = functools.partial(self._backward, mP, mc, keep, layout, P, res, cs, ct_obs)
+        return self._gradients(mP, mc, P, c0, ct_cN, back)
+
+    def fwd_segments(self, P, c0):
+        """``((ys, cN), ck)``: `fwd_array`'s run and the carries at the starts of its
+        checkpointed segments (`blocks_per_segment` save blocks each), in one pass."""
+        ys, cN, ck = self._in_segments(P, c0, self.blocks_per_segment, starts=True)
+        return (ys, cN), ck
+
+    def adj_segments(self, mP, mc, keep, P, c0, ct_obs, ct_cN, ck=None):
+        """The discrete adjoint from `fwd_segments`' carries ``ck`` (``None``: one segment,
+        from ``c0``): `adj_residuals`' ``(gP, gc0)``, each segment's residuals replayed
+        from its start (`_replay`), last segment first. Memory ``~ K + n / K`` steps."""
+        m, S = self.blocks_per_segment, self.segments
+
+        def per_segment(a):  # (n_save, ...) -> (S, m, ...), the padded tail zero
+            a = jnp.concatenate([a, jnp.zeros((S * m - self.n_save,) + a.shape[1:], a.dtype)])
+            return a.reshape((S, m) + a.shape[1:])
+
+        def segment(carry, x):
+            s, c, cts = x
+            layout: list = []
+            _, (_, res, cs) = self._replay(mP, mc, layout, P, c, s * m, m, observe=False)
+            return self._backward(mP, mc, keep, layout, P, res, cs, cts, carry), None
+
+        cts = [per_segment(a) for a in ct_obs]
+
+        def backward(carry):
+            if S == 1:  # its loops stand alone: XLA's older CPU emitter aborts on a loop over
+                # one segment hoisted whole ("All or none of the slices should have an
+                # explicit index")
+                return segment(carry, (0, c0, [a[0] for a in cts]))[0]
+            return jax.lax.scan(segment, carry, (jnp.arange(S), ck, cts), reverse=True)[0]
+
+        return self._gradients(mP, mc, P, c0, ct_cN, backward)
 
 
 def _packed_vjp(layout: list, g, *primals):
