@@ -28,7 +28,7 @@ program, "autodiff" (every pass off and ``program="autodiff"``: the checkpointed
 `so3jax.simulate` takes no program: "autodiff" is measured on ``grad`` and ``small grad``
 only. Past the
 policy's ``forward_jacobian_max`` differentiated scalars (the quadrotor's 12 gains) the
-engine differentiates with JAX's autodiff anyway.
+engine's reverse mode is its discrete adjoint from checkpointed segments.
 
 Each configuration compiles each workload `COMPILE_ROUNDS` times, in alternated rounds (timed
 apart, JAX's caches cleared before each, `_common.engine_settings`), and keeps the fastest

@@ -144,8 +144,8 @@ class Programs(Loop):
         saved-point axis of ``dys`` and in front of ``dcN``. ``dys`` is a list: the
         observations whose kind in ``mo`` (`obs_kinds`) is not `OBS_ZERO`, as their kind
         stores them (`_obs_tangent`). Rotations' tangents are
-        nine numbers here whatever ``mc`` says (`FRAME`): three numbers as small arrays
-        of their own made the program about 1.8x slower on a CPU (more kernels).
+        nine numbers here whatever ``mc`` says (`FRAME`): as small arrays of their own,
+        three numbers cost more kernels than they save on a CPU.
         """
         mc = _dense_mask(mc)
         tobs = functools.partial(self.observation_tangents, mP, mc, mo)

@@ -42,8 +42,8 @@ def fusion_cut(values: list, index) -> list:
     XLA on CPU fuses elementwise operations into their consumers and duplicates
     cheap producers into every consumer that needs them. In a scalarized step,
     where every carry component is its own fusion, that recomputes the shared
-    part of the step once per output: the seed's RKMK4 step (about 2300 scalar
-    operations) compiled to about 25000, ten times over. `optimization_barrier`
+    part of the step once per output, a program many times the size of the step's.
+    `optimization_barrier`
     does not stop it (the CPU compiler expands it into control dependencies
     before fusing); a `lax.switch` whose branches all return their operands is
     removed by JAX (outputs forwarded), and a two-way one with cheap branches
@@ -89,10 +89,9 @@ def derivative_cut(*values) -> tuple:
     `array_cut` (index from the values).
 
     For what a run's derivative programs recompute but its forward pass does not, or
-    not enough to pay for a cut: a Runge-Kutta stage feeds every later stage, and
-    cutting there made the Jacobian program of RKMK4 in Cayley coordinates over 16
-    seed runs 1.5x faster, but a single run of the quadrotor (4000 steps) 1.36x slower,
-    a conditional per stage costing about 0.3 us where a run does little work.
+    not enough to pay for a cut: a Runge-Kutta stage feeds every later stage. Cut there,
+    a batch's Jacobian program runs faster, but a single run, where a conditional per
+    stage costs more than the little work it saves, slower.
     """
     return values
 

@@ -3,7 +3,7 @@
 A step of an attitude integrator works on dozens of 3-vectors and 3x3 matrices.
 XLA on CPU turns such code into a hundred or more separate kernels per step
 (every reduction, `stack` and shape change ends a fusion), and each kernel
-launch costs about 50–100 ns, far more than its arithmetic. Under `vmap` the
+launch costs far more than its arithmetic. Under `vmap` the
 batch axis goes in front of every small array, so the same kernels then also
 stride through memory (an array-of-structures layout).
 
@@ -496,7 +496,7 @@ def _apply(eqn, ins):
         if _is_probe(p):
             # `cut_index`'s probe, whose only consumers are the cuts dropped below:
             # evaluated, it would add a consumer to the values it reads, and
-            # `_eval_with_cuts` would cut them (B = 256 gradient: 1.15x slower).
+            # `_eval_with_cuts` would cut them (a slower program).
             return [_const(np.int32(0))]
         return _closed(p["call"], ins)
     if name == "cond":
@@ -592,9 +592,8 @@ def flat_program(fn: Callable, example, index=None, cut_cone: int | None = None,
 
     With an ``index`` from `cut_index` (see `fusion_cut`), the scalar program
     is cut wherever XLA would otherwise recompute ``cut_cone`` or more
-    operations once per consumer of a value: the fused computations of the
-    batched seed step drop from about 25000 HLO instructions to about 6500 (the
-    program has 2300 scalar operations), and it runs 1.4 to 2.4x faster.
+    operations once per consumer of a value (`fusion_cut`; what it buys:
+    ``benchmarks/ablation.py``'s ``cuts`` row).
     """
     run = scalarize(fn, example)
     leaves, tree = jax.tree.flatten(example)
