@@ -230,12 +230,12 @@ def test_batched_equals_loop_and_single():
 _W = np.array([1.0, 2.0, 3.0])
 
 
-def _toy(P, program, K=None):
+def _toy(P, program, K=None, n=21, every=3):
     """A small nonlinear loop with an integer counter in its carry."""
     step = lambda P, c: (c[0] + 0.1 * jnp.sin(P * c[0] * _W) + 0.01 * P**2, c[1] + 1)
     observe = lambda P, c: jnp.sum(_W * c[0] ** 2)
     c0 = (jnp.array([0.1, 0.4, -0.3]), jnp.array(0, jnp.int32))
-    ys, cN = _engine.run(step, observe, P, c0, 21, 3, checkpoint=K, program=program)
+    ys, cN = _engine.run(step, observe, P, c0, n, every, checkpoint=K, program=program)
     return jnp.sum(ys) + jnp.sum(jnp.cos(cN[0]))
 
 
@@ -617,11 +617,19 @@ def test_scan_split_reads_loop_operands_and_unknown_loops_fall_back(monkeypatch)
 
 
 def test_checkpointing_keeps_gradients_and_chunks():
-    """Any checkpoint length gives the same gradient (the segments are padded)."""
+    """Any checkpoint length gives the same gradient. With 23 saved points (a prime) a
+    segment of about ``K`` steps holds no divisor of them: the last segment is padded with
+    blocks that leave the carry alone, and the discrete adjoint runs them backward too."""
     ref = jax.grad(_toy)(1.7, "autodiff", 21)
     for program in ("auto", "adjoint", "autodiff"):
         for K in (1, 4, 5, 21):
             assert _rel(jax.grad(_toy)(1.7, program, K), ref) < 1e-12
+    for n, every, K, segments in ((23, 1, 5, 5), (46, 2, 12, 4)):
+        ref = jax.grad(_toy)(1.7, "autodiff", n, n, every)
+        toy = functools.partial(_toy, program="adjoint", K=K, n=n, every=every)
+        assert _rel(jax.grad(toy)(1.7), ref) < 1e-12
+        (entry,) = s.explain(jax.grad(toy), 1.7).of("adjoint")
+        assert entry["segments"] == segments and segments * entry["steps_per_segment"] > n
     step = lambda P, c: (c[0] * P, c[1] + 1)
     c0 = (jnp.ones(2), jnp.array(0, jnp.int32))
     ys, cN = _engine.run(step, lambda P, c: c[0][0], 1.5, c0, 21, 3)
