@@ -225,7 +225,7 @@ def figure(data: dict):
     """The ratio to ``plain`` per configuration, float64 and float32, with the target."""
     configs = [c for c in data["configs"] if c != BASE]
     by = {(r["dtype"], r["config"]): r for r in data["rows"]}
-    fig, ax = C.plt.subplots(figsize=(1.0 + 0.9 * len(configs), 4.2))
+    fig, ax = C.plt.subplots(figsize=(max(6.5, 1.0 + 0.9 * len(configs)), 4.2))
     width = 0.8 / len(data["dtypes"])
     for i, dname in enumerate(data["dtypes"]):
         rows = [by.get((dname, c)) for c in configs]
@@ -248,7 +248,7 @@ def figure(data: dict):
     e = data["env"]
     machine = f"CPU, {e['cpu_count']} cores" if e["backend"] == "cpu" else e["device_kind"]
     ax.set_title(
-        f"what each vehicle model costs: {data['batch']} runs, {data['n_steps']} steps, "
+        f"what each vehicle model costs:\n{data['batch']} runs, {data['n_steps']} steps, "
         f"RKMK4 ({machine})",
         fontsize=10,
     )
