@@ -206,9 +206,6 @@ class CheckpointedAdjoint(Strategy):
         # this many scalars ran about as fast and compiled several times longer.
         plain = _float_tangent(loop.fwd_checkpointed, treedef, nz, out_nz)
         xs, ts = _pick(nz, p_leaves), _pick(nz, t_leaves)
-        shapes = [
-            jax.ShapeDtypeStruct(jnp.shape(o), o.dtype) for o in _pick(out_nz, jax.tree.leaves(out))
-        ]
         tan = _linear_tangent(
             plain,
             plain,
@@ -218,7 +215,7 @@ class CheckpointedAdjoint(Strategy):
             _pick(nz, real),
             adjoint=adjoint,
             extra=saved,
-            out_shapes=shapes,
+            out_shapes=_pick(out_nz, jax.tree.leaves(out)),  # (their shapes alone)
         )
         return out, _with_float0(out, out_nz, tan)
 

@@ -76,7 +76,8 @@ def linear_call(
       differentiates and batches itself: what a second derivative differentiates (the
       call's, and its transpose's as JAX's transpose of it) where the residuals move.
       Default: ``fun`` as traced.
-    - `out_shapes`: ``fun``'s output as ``jax.ShapeDtypeStruct`` leaves. Given, ``fun`` is
+    - `out_shapes`: leaves shaped as ``fun``'s output (``jax.ShapeDtypeStruct`` or arrays,
+      whose shapes and dtypes alone are read), in its structure. Given, ``fun`` is
       traced when the call is evaluated, lowered or differentiated again, not when it is
       bound: reverse mode, which needs only ``fun_transpose``, never traces it. ``fun``
       must then close over no traced value (`ValueError` when it is traced), and a wrong

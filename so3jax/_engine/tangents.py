@@ -99,8 +99,8 @@ def _linear_tangent(
     """
     shapes = [jax.ShapeDtypeStruct(jnp.shape(t), jnp.result_type(t)) for t in ts]
     n_real = sum(math.prod(s.shape) for s, r in zip(shapes, real, strict=True) if r)
-    max_columns = current().forward_jacobian_max if max_columns is None else max_columns
     active = current()
+    max_columns = active.forward_jacobian_max if max_columns is None else max_columns
 
     def callee(res, ts):
         with using(active):  # (traced later with ``out_shapes``)
