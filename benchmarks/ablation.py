@@ -20,6 +20,8 @@ program, "autodiff" (every pass off and ``program="autodiff"``: the checkpointed
   states of ``run``, with respect to ``(k_R, k_Omega)``, no `vmap`: the derivative program
   is the array layout, whose loop the engine hoists only with its small reductions
   written out (the ``unroll`` pass);
+- ``LGVI grad``: the same gradient with the variational integrator `so3jax.LGVI`, whose
+  step solves an implicit equation by Newton iterations;
 - ``quadrotor``: the forward pass of DiffTune's quadrotor loss (``difftune.py``: the sum
   of ``|e_x|^2`` over the samples of Lee's controller on the 10 s circle), 800 steps of
   2.5 ms;
@@ -90,6 +92,7 @@ SIZES = {
     "grad": ((16, 10), (256, 200)),
     "large": ((32, 10), (1024, 200)),
     "small": (4, 8),
+    "LGVI": (20, 1000),
     "quadrotor": (20, 800),
 }
 
@@ -138,12 +141,15 @@ def workloads(quick: bool) -> dict:
     grad, small_grad = mean_grad(R0, W0), mean_grad(R0[:Bs], W0[:Bs])
     large_grad = mean_grad(*so3.initial_states(jax.random.key(1), Bl))
 
-    def run_grad(program):
-        def cost(k):
-            tr = so3.simulate(with_gains(seed, k[0], k[1]), method, 0.01, n["run"])
-            return jnp.sum(tr.Omega**2)
+    def run_grad_of(m, steps):
+        def make(program):
+            def cost(k):
+                tr = so3.simulate(with_gains(seed, k[0], k[1]), m, 0.01, steps)
+                return jnp.sum(tr.Omega**2)
 
-        return jax.grad(cost), jnp.array([8.81, 2.54])
+            return jax.grad(cost), jnp.array([8.81, 2.54])
+
+        return make
 
     quad = so3.scenes.quadrotor_circle(control_period=DT_QUAD)
     steps_q = n["quadrotor"]
@@ -158,7 +164,12 @@ def workloads(quick: bool) -> dict:
         "grad": (f"`grad` over {Bg} runs, {steps_g} steps", grad, True),
         "large grad": (f"`grad` over {Bl} runs, {steps_g} steps", large_grad, False),
         "small grad": (f"`grad` over {Bs} runs, {steps_g} steps", small_grad, True),
-        "run grad": (f"`grad`, one run, {n['run']} steps", run_grad, False),
+        "run grad": (f"`grad`, one run, {n['run']} steps", run_grad_of(method, n["run"]), False),
+        "LGVI grad": (
+            f"`grad`, one run, LGVI, {n['LGVI']} steps",
+            run_grad_of(so3.LGVI(), n["LGVI"]),
+            False,
+        ),
         "quadrotor": (f"quadrotor loss, {steps_q} steps", lambda p: (loss, quad.gains), False),
         "quadrotor grad": (
             "its value and gradient (12 gains)",

@@ -11,8 +11,10 @@ implicit equation reads, in vector form, ``2 (J f + f x J f) = (1 + |f|^2) a``
 with ``a = h Pi_k + h^2/2 M_k`` (because ``hat(f) J_d + J_d hat(f) = hat(J f)``
 and ``hat(f)^2 J_d - J_d hat(f)^2 = hat(f x J f)``): a polynomial, so Newton's
 method needs no transcendental functions. It runs a fixed number of
-iterations from ``f = J^-1 a / 2`` (differentiable), and the residual is
-checked: a step that did not converge is reported as failed.
+iterations from ``f = J^-1 a / 2``, and the residual is checked: a step that
+did not converge is reported as failed. The solve's derivative is the implicit
+one at its root (one 3x3 solve, `_cayley_root`), so a derivative program carries
+no iteration's tangent (``benchmarks/ablation.py``, ``LGVI grad``).
 When ``M`` depends on ``Omega`` (feedback control), ``Pi_{k+1}`` is found by
 fixed-point iteration (a contraction for ``h k_Omega / (2 J) < 1``).
 
@@ -27,7 +29,10 @@ body problem", Comput. Methods Appl. Mech. Engrg. 196 (2007) 2907–2924.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from .._scene import MechanicalScene
@@ -54,6 +59,30 @@ def _residual_jac(f, J, a):
     """``dG/df = 2 (J + hat(f) J - hat(J f)) - 2 a f^T``."""
     Jf = _mv(J, f)
     return 2.0 * (J + _mm(_hat(f), J) - _hat(Jf)) - 2.0 * a[..., :, None] * f[..., None, :]
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _cayley_root(iters, J, a, f):
+    """``iters`` Newton iterations on ``G(f) = 0`` (`_residual`) from ``f``.
+
+    Its derivative is the implicit one at the root it returns, ``df = -G_f^-1 dG``
+    (``dG``: ``G``'s differential in ``J`` and ``a`` at fixed ``f``; the start's tangent
+    does not enter): one 3x3 solve, not the derivative of every iteration. Where the step
+    converged (its ``failed`` flag is false) that is the derivative of the step's exact
+    solution, to the residual's round-off.
+    """
+    for _ in range(iters):
+        f = f - _solve3(_residual_jac(f, J, a), _residual(f, J, a))
+    return f
+
+
+@_cayley_root.defjvp
+def _cayley_root_jvp(iters, primals, tangents):
+    J, a, f0 = primals
+    f = _cayley_root(iters, J, a, f0)
+    dJ, da, _ = tangents
+    _, dG = jax.jvp(lambda J, a: _residual(f, J, a), (J, a), (dJ, da))
+    return f, -_solve3(_residual_jac(f, J, a), dG)
 
 
 def _cayley_m1(f):
@@ -103,9 +132,7 @@ class LGVI(AbstractLieSolver):
         M0 = scene.torque(t, y)
         p = Pi if M0 is None else Pi + 0.5 * h * M0
         a = h * p
-        f = 0.5 * body.omega_from_momentum(a)
-        for _ in range(self.newton_iters):
-            f = f - _solve3(_residual_jac(f, J, a), _residual(f, J, a))
+        f = _cayley_root(self.newton_iters, J, a, 0.5 * body.omega_from_momentum(a))
         res = _residual(f, J, a)
         eps = jnp.finfo(f.dtype).eps
         scale = jnp.sqrt(_dot(a, a)) * (1.0 + _dot(f, f)) + jnp.finfo(f.dtype).tiny
