@@ -126,14 +126,9 @@ def pytest_collection_modifyitems(config, items):
 
 def _equations(jaxpr):
     """Every equation of ``jaxpr``, those of its nested jaxprs included (depth first)."""
-    for e in jaxpr.eqns:
-        yield e
-        for v in e.params.values():
-            for sub in v if isinstance(v, (tuple, list)) else (v,):
-                if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                    yield from _equations(sub.jaxpr)
-                elif isinstance(sub, jax.extend.core.Jaxpr):
-                    yield from _equations(sub)
+    from so3jax._engine.passes.scalarize import equations
+
+    return (e for e, _ in equations(jaxpr))
 
 
 def _count_cuts(jaxpr) -> int:

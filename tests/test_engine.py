@@ -1132,16 +1132,8 @@ def test_hoisted_call_returns_its_inputs(engine_policy):
     step = lambda P, c: jnp.tanh(P[0] * c + P[1])
     f = lambda b: _engine.run(step, lambda P, c: c, (0.5, b), jnp.ones(3), 5)[0]
 
-    def calls(jaxpr):
-        out = []
-        for e in jaxpr.eqns:
-            if e.params.get("name") == "call" and "jaxpr" in e.params:
-                out.append(e)
-            for sub in sc.subjaxprs(e.params):
-                out += calls(sub)
-        return out
-
-    (call,) = calls(jax.make_jaxpr(jax.vmap(f))(jnp.zeros((20, 3))).jaxpr)
+    jaxpr = jax.make_jaxpr(jax.vmap(f))(jnp.zeros((20, 3))).jaxpr
+    (call,) = [e for e, _ in sc.equations(jaxpr) if e.params.get("name") == "call"]
     inner = call.params["jaxpr"].jaxpr
     n = len(inner.invars)
     assert len(inner.outvars) > n and list(inner.outvars[-n:]) == list(inner.invars)
@@ -1222,11 +1214,7 @@ def test_hoisting_keeps_out_what_one_kernel_cannot_hold(monkeypatch):
 
 
 def _reductions(jaxpr) -> list:
-    out = [e for e in jaxpr.eqns if e.primitive.name.startswith("reduce_")]
-    for e in jaxpr.eqns:
-        for sub in sc.subjaxprs(e.params):
-            out += _reductions(sub)
-    return out
+    return [e for e, _ in sc.equations(jaxpr) if e.primitive.name.startswith("reduce_")]
 
 
 def test_small_reductions_written_out_term_by_term():

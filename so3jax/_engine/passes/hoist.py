@@ -81,16 +81,13 @@ def _hoistable(jaxpr, runs: int = 1, reductions: bool = True) -> bool:
     """Whether every equation of ``jaxpr`` (nested ones too) is in `_HOISTABLE`, with no
     reduction (none at all without ``reductions``) over more than ``hoist_max_reduced``
     elements in a batch of ``runs`` runs (``runs=0``: whatever its reductions)."""
-    for e in jaxpr.eqns:
+    limit = current().hoist_max_reduced
+    for e, _ in sc.equations(jaxpr):
         if e.primitive.name not in _HOISTABLE:
             return False
-        if e.primitive.name in _UNROLLED:
-            if (
-                not reductions
-                or math.prod(e.invars[0].aval.shape) * runs > current().hoist_max_reduced
-            ):
-                return False
-        if not all(_hoistable(j, runs, reductions) for j in sc.subjaxprs(e.params)):
+        if e.primitive.name in _UNROLLED and (
+            not reductions or math.prod(e.invars[0].aval.shape) * runs > limit
+        ):
             return False
     return True
 
@@ -99,20 +96,16 @@ def _largest_inner(jaxpr) -> int:
     """The bytes of the largest array made inside the bodies of ``jaxpr``'s equations (its
     loops' and calls', at any depth): what one iteration of a loop holds, its stacked
     inner loops included; not ``jaxpr``'s own inputs and outputs."""
-
-    def largest(j, top: bool) -> int:
-        most = 0
-        for e in j.eqns:
-            if not top:
-                for v in e.outvars:
-                    aval = v.aval
-                    if hasattr(aval, "shape") and hasattr(aval, "dtype"):
-                        most = max(most, math.prod(aval.shape) * aval.dtype.itemsize)
-            for sub in sc.subjaxprs(e.params):
-                most = max(most, largest(sub, False))
-        return most
-
-    return largest(jaxpr, True)
+    return max(
+        (
+            math.prod(v.aval.shape) * v.aval.dtype.itemsize
+            for e, depth in sc.equations(jaxpr)
+            if depth > 0
+            for v in e.outvars
+            if hasattr(v.aval, "shape") and hasattr(v.aval, "dtype")
+        ),
+        default=0,
+    )
 
 
 def _hoisted(loop: Callable, *args, xs_from: int | None = None):

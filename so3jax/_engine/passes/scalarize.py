@@ -532,14 +532,21 @@ def subjaxprs(params: dict) -> list:
     return out
 
 
+def equations(jaxpr, depth: int = 0):
+    """``(eqn, depth)`` for every equation of ``jaxpr`` and of the jaxprs nested in its
+    equations, depth first (``depth``: 0 for ``jaxpr``'s own)."""
+    for e in jaxpr.eqns:
+        yield e, depth
+        for sub in subjaxprs(e.params):
+            yield from equations(sub, depth + 1)
+
+
 def _check(jaxpr) -> None:
     """Raise `ScalarizeError` up front for any primitive `_apply` does not handle."""
-    for eqn in jaxpr.eqns:
+    for eqn, _ in equations(jaxpr):
         name = eqn.primitive.name
         if name not in _ELEMENTWISE and name not in _STRUCTURAL:
             raise ScalarizeError(f"scalarize: primitive {name!r} is not supported")
-        for sub in subjaxprs(eqn.params):
-            _check(sub)
 
 
 def scalarize(fn: Callable, *example_args) -> Callable:
