@@ -342,7 +342,7 @@ def main():
         "quick": args.quick,
         "env": C.environment(),
         "dtype": "float64",
-        "method": "RKMK4",
+        "method": "RKMK4 (LGVI where a workload names it)",
         "repeats": args.repeats,
         "compile_rounds": 1 if args.quick else COMPILE_ROUNDS,
         "passes": sorted(policy.PASSES),
