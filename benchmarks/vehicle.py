@@ -225,7 +225,9 @@ def figure(data: dict):
     """The ratio to ``plain`` per configuration, float64 and float32, with the target."""
     configs = [c for c in data["configs"] if c != BASE]
     by = {(r["dtype"], r["config"]): r for r in data["rows"]}
-    fig, ax = C.plt.subplots(figsize=(max(6.5, 1.0 + 0.9 * len(configs)), 4.2))
+    fig, ax = C.plt.subplots(
+        figsize=(max(6.5, 1.0 + 0.9 * len(configs)), 4.2), layout="constrained"
+    )
     width = 0.8 / len(data["dtypes"])
     for i, dname in enumerate(data["dtypes"]):
         rows = [by.get((dname, c)) for c in configs]
@@ -252,7 +254,6 @@ def figure(data: dict):
         f"RKMK4 ({machine})",
         fontsize=10,
     )
-    fig.tight_layout()
     return fig
 
 
