@@ -1,30 +1,19 @@
 """The execution engine: how every fixed-step run executes.
 
-`simulate`, `rollout_cost` / `expected_cost`, `sweep` and `tune` step a carry with a
-pure step function and observe it every ``save_every`` steps. They hand that loop to
-`run`; `explain` says what a call executes and why.
+`simulate`, `rollout_cost` / `expected_cost`, `sweep` and `tune` hand their loop to `run`;
+`explain` says what a call executes and why.
 
 How to read it, smallest first:
 
-- `so3jax._engine.loop`: the reference programs, a plain ``lax.scan`` and its
-  checkpointed segments. With ``program="autodiff"`` that is all a run is.
-- `so3jax._engine.derivatives`: the derivative strategies as objects (`Autodiff`, the
-  reference; `OnePassJacobian`; `CheckpointedAdjoint`, the discrete adjoint) and `choose`,
-  which picks one.
-- `so3jax._engine.layout`: one run executes the array program; a batch under ``vmap``
-  the scalarized one from the policy's threshold on (a ``custom_vmap`` rule, so nested
-  ``vmap`` and ``vmap`` inside ``jit`` take it).
+- `so3jax._engine.loop`: the reference programs, ``lax.scan`` and its checkpointed segments.
+- `so3jax._engine.derivatives`: `Autodiff`, `OnePassJacobian`, `CheckpointedAdjoint` and `choose`.
+- `so3jax._engine.layout`: the array program for one run, the scalarized one for a batch.
 - `so3jax._engine.policy`: every threshold and switch, in one frozen `Policy`.
-- `so3jax._engine.passes`: the optimisations, one module each (scalarize, cuts, frames,
-  hoist, unroll, tiles), each proving its equality with the reference in
-  ``tests/passes/`` and measured by ``benchmarks/ablation.py``.
-- `so3jax._engine.programs`: the derivative programs the strategies build (the Jacobian
-  and adjoint programs of one loop); their scalarized layout is the pass's
-  (`so3jax._engine.passes.scalarized`).
-- `so3jax._engine._jax`: every JAX internal touched, behind a version gate: on a JAX
-  release outside it, every run takes the reference path and warns once.
+- `so3jax._engine.passes`: one module per pass (``tests/passes/``, ``benchmarks/ablation.py``).
+- `so3jax._engine.programs`: the Jacobian and adjoint programs of one loop.
+- `so3jax._engine._jax`: every JAX internal touched, behind a version gate.
 
-The design and its measurements: ``docs/engine.md`` and ``docs/performance.md``.
+Design and measurements: ``docs/engine.md``, ``docs/performance.md``.
 """
 
 from __future__ import annotations
@@ -61,31 +50,26 @@ def run(
 
     **Arguments:**
 
-    - `step`: ``step(params, carry) -> carry``, one step (pure; a carry may
-      hold integer leaves such as a step counter and a status code).
+    - `step`: ``step(params, carry) -> carry``, pure (a carry may hold integer leaves).
     - `observe`: ``observe(params, carry) -> pytree`` of float arrays.
-    - `params`: a pytree of arrays the loop depends on; its float leaves (and
-      those of ``carry0``) are what derivatives flow to.
+    - `params`: a pytree of arrays; derivatives flow to its float leaves and ``carry0``'s.
     - `n_steps`, `save_every`: Python ints, ``n_steps % save_every == 0``.
-    - `checkpoint`: steps per checkpointed segment of the adjoint (default
-      about ``sqrt(n_steps)``; ``n_steps`` keeps every state).
-    - `program`: ``"auto"`` (the engine decides, see the module docstring);
-      ``"array"`` or ``"scalar"`` (one layout for the forward run whatever the
-      batching, derivatives from JAX's ``jvp`` of the checkpointed array
-      program: for benchmarks); ``"autodiff"`` (the checkpointed array
-      program, differentiated and batched by JAX alone: the reference);
-      ``"adjoint"`` (reverse mode always the engine's discrete adjoint,
-      `so3jax._engine.derivatives.CheckpointedAdjoint`; layouts per the policy).
+    - `checkpoint`: steps per checkpointed segment of the adjoint (default about
+      ``sqrt(n_steps)``; ``n_steps`` keeps every state).
+    - `program`: ``"auto"`` (the engine decides); ``"array"`` or ``"scalar"`` (one forward
+      layout whatever the batching, derivatives by JAX's ``jvp`` of the checkpointed array
+      program: for benchmarks); ``"autodiff"`` (the checkpointed array program,
+      differentiated and batched by JAX alone: the reference); ``"adjoint"`` (reverse mode
+      always `so3jax._engine.derivatives.CheckpointedAdjoint`). On a JAX release outside
+      `so3jax._engine._jax.TESTED` every program is ``"autodiff"``, with a warning.
 
-    **Returns:** ``(observations, final carry)``; every observation leaf has a
-    leading axis of length ``n_steps // save_every`` (the states after steps
-    ``save_every, 2 save_every, ...``).
+    **Returns:** ``(observations, final carry)``; each observation leaf has a leading axis of
+    ``n_steps // save_every`` (the states after steps ``save_every, 2 save_every, ...``).
     """
     if program not in _PROGRAMS:
         raise ValueError(f"program must be one of {_PROGRAMS}, got {program!r}")
     K = checkpoint_length(n_steps) if checkpoint is None else int(checkpoint)
-    # Closed-over tracers (a reference that closes over a traced amplitude, say)
-    # become explicit parameters, so derivatives and batching see them.
+    # closed-over tracers become explicit parameters, seen by derivatives and batching
     step_c, step_consts = jax.closure_convert(step, params, carry0)
     obs_c, obs_consts = jax.closure_convert(observe, params, carry0)
     P = (params, step_consts, obs_consts)

@@ -1,19 +1,12 @@
 """Every JAX internal so3jax's engine touches, behind one version gate.
 
-The engine's fast paths lean on parts of JAX that are not its stable API:
+- `set_xla_metadata`: tags a loop so XLA's CPU compiler builds it as one kernel
+  (`so3jax._engine.passes.hoist._hoisted`);
+- ``BatchTracer``: whether a value closed over is batched by an enclosing ``vmap`` (`batched`);
+- the rule tables of so3jax's own primitive (`so3jax._engine.linear_call`).
 
-- `jax.experimental.xla_metadata.set_xla_metadata`, which tags a loop so that XLA's
-  CPU compiler builds it as one kernel (`so3jax._engine._hoisted`);
-- `jax._src.interpreters.batching.BatchTracer`, to tell whether a value closed over
-  by a program is batched by an enclosing ``vmap`` (`batched`);
-- the rule tables for a primitive of so3jax's own (`so3jax._engine.linear_call`, which
-  checks its own names).
-
-`TESTED` lists the JAX releases the test suite passes on with them. On another
-release (`supported` is False) the engine runs its reference programs: JAX's own
-autodiff of the checkpointed ``lax.scan``, no scalarized layout, no hoisted loops.
-It warns once, naming what that costs (`warn_reference_path`). Nothing here changes
-JAX's state.
+On a JAX release outside `TESTED` (`supported` is False) the engine runs its reference
+programs and warns once (`warn_reference_path`). Nothing here changes JAX's state.
 """
 
 from __future__ import annotations
@@ -26,7 +19,7 @@ import jax
 #: The JAX releases (major, minor) the suite passes on with the engine's fast paths.
 TESTED = frozenset({(0, 10), (0, 11), (0, 12)})
 
-try:  # frontend attributes on the ops traced inside (`so3jax._engine._hoisted`)
+try:
     from jax.experimental.xla_metadata import set_xla_metadata
 except ImportError:  # pragma: no cover - an older JAX: loops compile as XLA decides
     set_xla_metadata = None
@@ -68,9 +61,8 @@ def warn_reference_path() -> None:
 def batched(x) -> bool:
     """Whether ``x`` is batched by an enclosing ``vmap`` (a batch tracer with a batch axis).
 
-    JAX up to 0.9 marks an unbatched tracer's axis with the sentinel ``not_mapped``; 0.10
-    and later with ``None``. Where JAX's batch tracer cannot be found, any tracer counts
-    as batched (the safe answer: a batched layout for a value that is not).
+    An unbatched axis is ``not_mapped`` (JAX <= 0.9) or ``None``. Without JAX's batch tracer,
+    any tracer counts as batched (the safe answer).
     """
     if _BatchTracer is None:  # pragma: no cover - JAX moved it
         return isinstance(x, jax.core.Tracer)

@@ -1,27 +1,17 @@
 """Derivative strategies: how a run's derivative is computed, as objects.
 
 A run (`so3jax._engine.run`) is one ``jax.custom_jvp`` whose rule asks `choose` for a
-`Strategy` and hands it the loop, the forward program and the primals and tangents.
-There are four, all exact to round-off against each other:
+`Strategy`. The three agree to round-off (docs/engine.md, "Derivatives"):
 
-- `Autodiff`: JAX's own ``jvp`` of the checkpointed array program
-  (`so3jax._engine.loop.Loop.fwd_checkpointed`), which JAX transposes for reverse mode
-  with memory ``~ sqrt(n_steps)``. The reference (``program="autodiff"``, ``"array"``,
-  ``"scalar"``).
-- `OnePassJacobian`: through at most ``forward_jacobian_max`` scalars, the run's value
-  and its Jacobian in one pass (the primal once, the unit tangents as columns over it);
-  the tangent is the Jacobian times the input tangent, and ``grad`` is JAX's transpose
-  of that contraction, with nothing stored per step.
-- `CheckpointedAdjoint`: through more than the policy's ``forward_jacobian_max``
-  scalars, and whatever their number with ``program="adjoint"``: `Autodiff`'s ``jvp``
-  in forward mode and for second derivatives, and the engine's discrete adjoint (a
-  backward scan over every step's residuals, or over checkpointed segments) in reverse
-  mode, behind so3jax's own ``linear_call``.
+- `Autodiff`: JAX's ``jvp`` of the checkpointed array program
+  (`so3jax._engine.loop.Loop.fwd_checkpointed`); the reference.
+- `OnePassJacobian`: through at most ``forward_jacobian_max`` scalars, the value and its
+  Jacobian in one pass; nothing stored per step.
+- `CheckpointedAdjoint`: through more (any number with ``program="adjoint"``),
+  `Autodiff`'s ``jvp`` forward and the engine's discrete adjoint in reverse mode.
 
-Programs outside the fixed-step engine (`so3jax.simulate` with tolerances, whose loop
-is a ``while_loop``) use the same pieces: `Flagged` splits a rule's inputs into the
-differentiated leaves and the rest, `ForwardColumns` is the one-pass Jacobian of any
-forward-mode program, `CustomTranspose` joins a tangent program and a transpose.
+`Flagged`, `ForwardColumns` and `CustomTranspose` serve programs outside the fixed-step
+engine (`so3jax.simulate` with tolerances, a ``while_loop``).
 
 References: A. Griewank, A. Walther, *Evaluating Derivatives*, SIAM 2008 (vector
 forward mode and discrete adjoints, ch. 3; checkpointing, ch. 12).
@@ -87,11 +77,8 @@ __all__ = [
 class Strategy:
     """How a run's derivative is computed.
 
-    `jvp` is a ``jax.custom_jvp`` rule (``symbolic_zeros=True``): it takes the loop
-    (`so3jax._engine.programs.Programs`), the run's forward program ``fwd(P, c0) ->
-    (observations, final carry)``, and the rule's primals ``(P, c0)`` and tangents, and
-    returns the run's value and its tangent.
-    """
+    `jvp` is a ``custom_jvp`` rule (``symbolic_zeros=True``) given the loop, the forward
+    program ``fwd(P, c0) -> (observations, final carry)``, the primals and tangents."""
 
     name: str = ""
 
@@ -102,12 +89,7 @@ class Strategy:
 @dataclasses.dataclass(frozen=True)
 class Autodiff(Strategy):
     """JAX's own ``jvp`` of the checkpointed array program, through the nonzero tangents.
-
-    Only the inputs with nonzero tangents are differentiated: dense zero tangents for
-    every other array would add a tangent term to each operation that touches them.
-    Under ``grad`` JAX transposes it with symbolic zeros for the outputs a cost does not
-    use, so their backward pass is pruned. ``why``: for `so3jax.explain`.
-    """
+    ``why``: the reason `so3jax.explain` shows."""
 
     why: str = "JAX's derivative of the reference program"
     name = "checkpointed jvp"
@@ -150,25 +132,12 @@ class OnePassJacobian(Strategy):
 
 @dataclasses.dataclass(frozen=True)
 class CheckpointedAdjoint(Strategy):
-    """Through more than the policy's ``forward_jacobian_max`` scalars (whatever their
-    number with ``program="adjoint"``): the value from the
-    run's forward program, the tangent from JAX's ``jvp`` of the checkpointed array program
-    in forward mode and the engine's discrete adjoint in reverse mode; second derivatives
-    from JAX's ``jvp`` of the checkpointed array program.
+    """Through more than ``forward_jacobian_max`` scalars (any number with
+    ``program="adjoint"``): JAX's ``jvp`` of the checkpointed array program in forward mode
+    and for second derivatives, the discrete adjoint in reverse mode.
 
-    The tangent is a ``linear_call`` (`_linear_tangent`) whose program is JAX's ``jvp`` of
-    the checkpointed program and whose transpose is the discrete adjoint
-    (`_adjoint_transpose`): each of its loops one kernel on a CPU (the ``"hoist"``
-    pass), where JAX's transpose of `Autodiff`'s ``jvp`` runs XLA's loops of many
-    kernels. Its memory (`_adjoint_forward`): every step's residuals, kept by the run's
-    forward pass, while they fit the policy's ``adjoint_residual_bytes`` per run (linear
-    in ``n_steps``; one backward loop, `Programs.adj_residuals`); past it the carries at
-    the starts of checkpointed segments (``~ sqrt(n_steps)``), each segment replayed
-    backward (`Programs.adj_segments`). Observations a cost does not
-    use are left out of the backward pass, as JAX's transpose leaves them out. The
-    ``linear_call``'s own derivative (``jax.hessian``, ``jvp`` of ``grad``) is JAX's
-    ``jvp`` of the checkpointed program (`_linear_tangent`'s rule). ``why``: for
-    `so3jax.explain`.
+    A ``linear_call`` (`_linear_tangent`) transposed by `_adjoint_transpose` over what
+    `_adjoint_forward` saves. ``why``: the reason `so3jax.explain` shows.
     """
 
     why: str = "more than forward_jacobian_max scalars"
@@ -201,9 +170,7 @@ class CheckpointedAdjoint(Strategy):
             )
             return _pick(nz, _fill(floats, gP + gc, [None] * len(floats)))
 
-        # Forward mode (``jacfwd``, `so3jax.tune`'s default through a dozen gains) is JAX's
-        # jvp of the checkpointed program: a tangent program of the engine's own through
-        # this many scalars ran about as fast and compiled several times longer.
+        # Forward mode: JAX's jvp of the checkpointed program (docs/engine.md).
         plain = _float_tangent(loop.fwd_checkpointed, treedef, nz, out_nz)
         xs, ts = _pick(nz, p_leaves), _pick(nz, t_leaves)
         tan = _linear_tangent(
@@ -223,10 +190,9 @@ class CheckpointedAdjoint(Strategy):
 def _adjoint_forward(loop: Programs, fwd: Callable, mP, mc, P, c0):
     """``(out, saved, layout)``: the run's value and what its discrete adjoint reads.
 
-    Every step's residuals (`Programs.fwd_residuals`; ``layout`` their packing) while
-    they take at most the policy's ``adjoint_residual_bytes`` per run; else the carries
-    at the starts of checkpointed segments (`Programs.fwd_segments`, ``layout`` ``None``;
-    nothing for one segment)."""
+    Every step's residuals (`Programs.fwd_residuals`, ``layout`` their packing) within
+    the policy's ``adjoint_residual_bytes`` per run; else the segments' starting carries
+    (`Programs.fwd_segments`, ``layout`` ``None``; nothing for one segment)."""
     steps, budget = loop.n, current().adjoint_residual_bytes
     if budget > 0:  # the residuals' size is known once they are traced
         layout: list = []
@@ -248,20 +214,17 @@ def _adjoint_forward(loop: Programs, fwd: Callable, mP, mc, P, c0):
 
 
 def _adjoint_transpose(loop: Programs, mP, mc, layout, P, c0, avals, ct_ys, ct_cN, saved):
-    """``(gP, gc)``: the discrete adjoint at the cotangents ``ct_ys`` (one per observation
-    leaf) and ``ct_cN`` (one per float leaf of the final carry), where ``None`` is a
-    symbolic zero: an observation the cost does not use is left out of the backward pass.
-    ``avals``: the shapes of the run's ``(ys, cN)``; ``saved`` and ``layout``: what
-    `_adjoint_forward` returned (`Programs.adj_residuals` reads residuals,
-    `Programs.adj_segments` checkpoints)."""
+    """``(gP, gc)``: the discrete adjoint at ``ct_ys`` (per observation leaf) and ``ct_cN``
+    (per float leaf of the final carry); ``None`` is a symbolic zero, left out of the
+    backward pass. ``avals``: the shapes of ``(ys, cN)``; ``saved``, ``layout``: from
+    `_adjoint_forward`."""
     keep = tuple(c is not None for c in ct_ys)
     kept = [c for c in ct_ys if c is not None]
     ct_cN = [
         jnp.zeros(a.shape, a.dtype) if c is None else c
         for c, a in zip(ct_cN, _floats(avals[1]), strict=True)
     ]
-    # Array layout only: XLA compiles a scalarized adjoint step (thousands of scalar
-    # operations) far more slowly than it runs it. Under ``vmap``, `_dual` batches it.
+    # Array layout only (docs/engine.md, "The discrete adjoint and the reference programs").
     if layout is not None:
         adj = functools.partial(loop.adj_residuals, mP, mc, keep, layout)
         gP, gc = _dual(adj, adj, "adjoint")(P, saved, kept, ct_cN)
@@ -285,9 +248,9 @@ def _size(xs) -> int:
 def choose(program: str, n_scalars: int) -> Strategy:
     """The strategy for a run of ``program`` differentiated through ``n_scalars`` scalars.
 
-    ``"auto"``: `OnePassJacobian` through at most the policy's ``forward_jacobian_max``
-    scalars, else `CheckpointedAdjoint`; ``"adjoint"``: `CheckpointedAdjoint`; ``"array"``,
-    ``"scalar"`` (benchmarks) and a JAX release without so3jax's ``linear_call``: `Autodiff`.
+    ``"auto"``: `OnePassJacobian` through at most ``forward_jacobian_max`` scalars, else
+    `CheckpointedAdjoint`; ``"adjoint"``: `CheckpointedAdjoint`; any other program, or a
+    JAX release without so3jax's ``linear_call``: `Autodiff`.
     """
     if program not in ("auto", "adjoint") or not _HAVE_LINEAR_CALL_BATCHING:
         return Autodiff(why="a program that asks for JAX's derivative")
@@ -322,18 +285,9 @@ def differentiated(loop: Programs, fwd: Callable, program: str) -> Callable:
 def _jacobian_jvp(loop: Programs, P, c0, nz: list, lin: list, mP: tuple, mc: tuple, elements: list):
     """The run's value and tangent from its Jacobian, computed in one pass.
 
-    ``lin`` (the nonzero input tangents, ``n`` scalars in all) is flattened into
-    a coefficient vector; the Jacobian program runs the unit tangents as ``n``
-    columns over one primal (no residuals, nothing recomputed), and the tangent
-    is each column scaled by its coefficient. Under ``jacfwd`` the columns are
-    computed once for every basis vector; under ``grad`` JAX transposes the
-    contraction. The same program runs scalarized under ``vmap`` of 16 runs or
-    more (the policy's ``batched_layout``).
-
-    ``elements`` (`_tangent_masks`) and the frame rules decide, per observation, what
-    the loop saves (`Programs.obs_kinds`): nothing where the tangent is zero (the
-    reference attitude of a gain's derivative), three numbers a column for a rotation.
-    A seed trajectory's columns take 15 numbers a point instead of 25.
+    The unit tangents of ``lin`` (the nonzero input tangents) run as columns over one
+    primal, then are contracted with ``lin``. `Programs.obs_kinds` picks what each
+    observation saves: nothing for a zero tangent, three numbers a column for a rotation.
     """
     pf, cf = _floats(P), _floats(c0)
     cols = _unit_columns(lin)
@@ -351,12 +305,11 @@ def _jacobian_jvp(loop: Programs, P, c0, nz: list, lin: list, mP: tuple, mc: tup
     ys, cN, Jys, JcN = jac(P, c0, dP, dc)
     coef = jnp.concatenate([jnp.ravel(x) for x in lin])
 
-    # Observations without a tangent get zeros here (the loop neither computes nor saves
-    # them); frames become dense here, where their three numbers are contracted first.
+    # Observations without a tangent become symbolic zeros; frames become dense here.
     J_it = iter(Jys)
     dys = []
     for y, kind in zip(jax.tree.leaves(ys), mo, strict=True):
-        if kind == OBS_ZERO:  # symbolic: no zeros are made, batched or masked downstream
+        if kind == OBS_ZERO:
             dys.append(SymbolicZero(jax.typeof(y).to_tangent_aval()))
             continue
         J = next(J_it)
@@ -368,18 +321,13 @@ def _jacobian_jvp(loop: Programs, P, c0, nz: list, lin: list, mP: tuple, mc: tup
     return (ys, cN), (dys, _tangent_tree(cN, dcNf))
 
 
-# --------------------------------------------------------------------------
-# the same pieces for programs outside the fixed-step engine
-# --------------------------------------------------------------------------
+# -- the same pieces for programs outside the fixed-step engine --
 
 
 @dataclasses.dataclass(frozen=True)
 class Flagged:
     """A ``custom_jvp`` rule's inputs (``symbolic_zeros=True``) split into the leaves it
-    differentiates (float leaves with a nonzero tangent, `xs` and their tangents `ts`)
-    and the rest.
-
-    `at` rebuilds the inputs with the differentiated leaves replaced.
+    differentiates (float leaves with a nonzero tangent: `xs`, tangents `ts`) and the rest.
     """
 
     leaves: list
@@ -412,15 +360,13 @@ class Flagged:
         return _pick(self.nz, leaves)
 
     def at(self, xs, others: list | None = None):
-        """The inputs (a pytree) with the differentiated leaves set to ``xs`` and the others
-        from ``others`` (default: the primals)."""
+        """The inputs with the differentiated leaves ``xs``, the rest ``others`` (or primals)."""
         base = self.leaves if others is None else others
         return jax.tree.unflatten(self.treedef, _fill(self.nz, list(xs), base))
 
 
 def jvp_through(fn: Callable, flagged: Flagged):
-    """JAX's ``jvp`` of ``fn(*inputs)`` through the differentiated leaves of ``flagged`` alone
-    (the others enter as constants: no tangent term where they are used)."""
+    """JAX's ``jvp`` of ``fn(*inputs)`` through ``flagged``'s differentiated leaves alone."""
     return _jvp_through(fn, flagged.treedef, flagged.leaves, flagged.t_leaves, flagged.nz)
 
 
@@ -439,11 +385,8 @@ def tangent_tree(out, float_tangents):
 class ForwardColumns:
     """The one-pass Jacobian of a program JAX differentiates in forward mode.
 
-    `jvp` runs ``fn(xs, others)`` with the ``n`` unit tangents of ``xs`` batched over one
-    primal (``jax.jvp`` under ``vmap``, the primal unbatched) and returns the value and
-    the Jacobian times the input tangents. Differentiated again, its reverse mode runs
-    the ``jvp`` by columns (`forward_differentiated`), so ``jacrev`` of ``jacfwd`` works
-    through a ``while_loop``.
+    `jvp`: ``fn(xs, others)`` and its Jacobian times the tangents, the unit tangents of
+    ``xs`` batched over one primal; reverse mode by columns (`forward_differentiated`).
     """
 
     def jvp(self, fn: Callable, flagged: Flagged):
@@ -472,10 +415,8 @@ class CustomTranspose:
     """A tangent program with a transpose of one's own: ``tangent(res, ts)`` (linear in
     ``ts``) and ``transpose(res, cts)``, where ``res`` are every input's leaves.
 
-    Neither function may close over the rule's trace (JAX may trace the transpose in
-    another): every input they need is in ``res``. Differentiating the residuals (a
-    second derivative) raises ``NotImplementedError(why)``.
-    """
+    Neither may close over the rule's trace. A second derivative raises
+    ``NotImplementedError(why)``."""
 
     why: str
 

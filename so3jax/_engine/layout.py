@@ -1,12 +1,11 @@
 """Layouts: the array program for one run, the scalarized one for a large batch.
 
-`_dual(array_fn, scalar_fn, what)` is the engine's switch between layouts: called
-unbatched it runs ``array_fn`` (traced once, `_Traced`); under ``vmap`` its
-``custom_vmap`` rule runs ``scalar_fn`` (the ``"scalarize"`` pass) from the policy's
-threshold for program ``what`` on, in tiles (the ``"tiles"`` pass) where the policy says,
-and the vmapped array program below it. Its derivative (`_dual_jvp`) differentiates the
-program the call runs, so second derivatives of a batch run the batch's program. With
-the passes off, a batch is JAX's ``vmap`` of the array program.
+`_dual(array_fn, scalar_fn, what)` switches between them: unbatched it runs ``array_fn``
+(traced once, `_Traced`); under ``vmap`` its ``custom_vmap`` rule runs ``scalar_fn`` (the
+``"scalarize"`` pass) from the policy's threshold for ``what`` on, in tiles (``"tiles"``)
+where the policy says, and the vmapped array program below it. Its derivative (`_dual_jvp`)
+differentiates the program the call runs. With the passes off, a batch is JAX's ``vmap`` of
+the array program (docs/engine.md, "Two layouts of one program").
 """
 
 from __future__ import annotations
@@ -48,40 +47,16 @@ def _dual(
 ) -> Callable:
     """``array_fn`` when unbatched; ``vmap`` of ``scalar_fn`` when batched.
 
-    ``settle``: how the derivative rule (`_dual_jvp`) starts the carry tangents of the
-    programs' loops (``None``: as JAX finds them). ``columns``: for the ``jvp`` of a
-    Jacobian program, where its columns are (`scalarized.columns_outside`).
+    ``settle``: how `_dual_jvp` starts the carry tangents of the programs' loops (``None``:
+    as JAX finds them). ``columns``: for the ``jvp`` of a Jacobian program, where its columns
+    are (`scalarized.columns_outside`). Where ``scalar_fn`` raises `ScalarizeError` at trace
+    time, a batch silently vmaps ``array_fn`` (the plan notes why).
 
-    ``scalar_fn`` raises `ScalarizeError` at trace time for an unsupported
-    primitive (a loop, dynamic indexing, `jax.checkpoint` inside the step); the
-    batched call then vmaps ``array_fn``, silently: nobody asked for the
-    scalarized program.
-
-    ``array_fn`` is traced once per call: the ``custom_vmap`` and its batching
-    rule both run that jaxpr (`_Traced`) instead of tracing ``array_fn`` again
-    (through the derivative programs' ``jvp`` and column ``vmap``, a second trace
-    cost more than batching the first one). Tracers it closes over are constants
-    of the jaxpr, closed over as before.
-
-    The call is a ``custom_jvp`` whose derivative JAX can differentiate, batch and
-    transpose again (`_dual_jvp`: JAX's ``jvp`` of ``array_fn``, or of the program
-    `_dual` would run under ``vmap`` behind a ``linear_call``), for two reasons:
-
-    - **Second derivatives.** The engine's derivative rules run these programs on
-      primals; ``jax.hessian`` (or ``jacfwd`` / ``jvp`` over ``grad``) then
-      differentiates the rule's programs again. A ``custom_vmap`` differentiated
-      inside another transform's ``vmap`` or partial evaluator returned tangents
-      batched unlike their primals or unknown primals ("Custom JVP rule must
-      produce primal and tangent outputs with corresponding shapes",
-      "Linearization failed to produce known values").
-    - **Bound whole under ``grad``.** When ``grad`` linearizes the engine's
-      ``custom_jvp`` rule, JAX runs that rule under its partial evaluator, whose
-      ``scan`` and ``cond`` rules partially evaluate a loop even when all its
-      inputs are known. The programs the rule runs on primals have only known
-      inputs, but under ``vmap`` their scalarized loop bodies were partially
-      evaluated anyway, and their fusion cuts hoisted out of the loop (longer to
-      lower and to compile). A ``custom_jvp`` call whose inputs are all known is
-      bound whole (``JaxprTrace.process_custom_jvp_call``).
+    ``array_fn`` is traced once per call: the ``custom_vmap`` and its rule run one jaxpr
+    (`_Traced`; tests/test_engine.py::test_batched_programs_are_traced_once). The call is a
+    ``custom_jvp`` (`_dual_jvp`) so that second derivatives differentiate it and ``grad``
+    binds it whole (docs/engine.md, "Second derivatives", "One custom JVP per run";
+    tests/test_engine.py::test_second_derivatives_equal_autodiff).
     """
 
     array_fn = _plan.traced(array_fn, what)
@@ -106,26 +81,18 @@ def _dual(
 
 
 def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primals, tangents):
-    """`_dual`'s derivative (second derivatives of a run: its rule's programs differentiated).
+    """`_dual`'s derivative: second derivatives of a run differentiate its rule's programs.
 
-    For the forward and Jacobian programs, the value is a `_dual` of the same
-    programs (scalarized under a ``vmap`` of 16 runs or more, ``batched_layout``) and the
-    tangent a ``linear_call`` (`_linear_tangent`) whose program is the ``jvp`` of the
-    program `_dual` would run, itself a `_dual` (``"jvp"``): a batch's second
-    derivatives run the batch's program, not the array program's. Integer outputs (a
-    run's status) get their ``float0`` zeros outside the ``linear_call``. The other
-    programs, and the ``"jvp"`` programs themselves (third derivatives): JAX's ``jvp``
-    of the array program (`_array_jvp`).
+    For ``"run"`` and ``"jacobian"``: the value is a `_dual` of the same programs and the
+    tangent a ``linear_call`` (`_linear_tangent`) of the ``jvp`` of the program `_dual` would
+    run, itself a `_dual` (``"jvp"``), so a batch's second derivatives run the batch's program.
+    Other programs, and the ``"jvp"`` ones (third derivatives): JAX's ``jvp`` of the array
+    program (`_array_jvp`). The ``linear_call``'s batching rule leaves a call with nothing
+    batched unbatched (docs/engine.md, "so3jax's own linear_call").
 
-    The ``linear_call``'s batching rule (`so3jax._engine.linear_call`) leaves a call with
-    nothing batched unbatched: JAX calls it under every ``vmap`` in scope (the inner
-    ``jacfwd``'s basis of ``jacfwd`` of ``jacfwd`` too), and batching its outputs there
-    would batch this rule's value with its tangent.
-
-    ``settle(primals, leaves, t_leaves, nz) -> (t_leaves, nz)`` (`_dual`'s; the Jacobian
-    program's is the ``"settle"`` pass's `jacobian_tangents`) starts the loop's carry
-    tangents that a step makes nonzero with zeros, so that JAX differentiates and batches
-    each loop of the ``jvp`` programs once.
+    ``settle(primals, leaves, t_leaves, nz) -> (t_leaves, nz)`` starts the loops' carry
+    tangents that a step makes nonzero with zeros (for the Jacobian program, the
+    ``"settle"`` pass's `jacobian_tangents`), so JAX differentiates each loop body once.
     """
     _plan.note("derivative", strategy="second derivative", program=what)
     if what not in ("run", "jacobian") or not _HAVE_LINEAR_CALL_BATCHING:
@@ -135,20 +102,18 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     t_leaves, nz = (t_leaves, real) if settle is None else settle(primals, leaves, t_leaves, real)
 
     out = _front(_batched_with(_dual(array_fn, scalar_fn, what, settle)(*primals), primals))
-    # Integer and boolean outputs (a run's status) have float0 tangents, outside the
-    # linear_call.
+    # integer outputs (a run's status): float0 tangents, outside the linear_call
     out_nz = [_is_float(o) for o in jax.tree.leaves(out)]
     plain = _float_tangent(array_fn, treedef, nz, out_nz)
     columns = None
     if what == "jacobian":  # its columns outside the runs in the jvp program too
         in_cols, out_cols = scalarized.jacobian_columns(primals, jax.tree.structure(out))
-        # the jvp program's arguments are (xs, ts, others): the differentiated leaves,
-        # their tangents (shaped alike), and every leaf
+        # the jvp program takes (xs, ts, others): differentiated leaves, tangents, all leaves
         xs_cols = _pick(nz, in_cols)
         columns = (xs_cols + xs_cols + in_cols, _pick(out_nz, out_cols))
     fast = _dual(plain, _float_tangent(scalar_fn, treedef, nz, out_nz), "jvp", columns=columns)
     xs, ts = _pick(nz, leaves), _pick(nz, t_leaves)
-    # The tangents the settle added are zeros (not real ones): `_linear_tangent`'s transpose.
+    # the tangents settle added are zeros, not real ones (`_linear_tangent`'s transpose)
     tan = _linear_tangent(plain, fast, xs, leaves, ts, _pick(nz, real))
     return out, _with_float0(out, out_nz, tan)
 
@@ -156,16 +121,10 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
 class _Traced:
     """A traced array program: called as it was traced, or batched with its loops settled.
 
-    Under ``vmap``, a `lax.scan` whose carry starts partly unbatched finds which
-    components become batched by batching its body again until nothing changes:
-    two passes over the forward loop's body for the seed (the run's status
-    starts unbatched), two over the Jacobian program's (its tangents start as
-    unbatched zeros), each nested scan once more per pass. `vmap` walks
-    the jaxpr's top-level equations; with the ``"settle"`` pass, before each loop it
-    batches the carry components that its body would batch (`settle.batched_carries`:
-    the same fixed point, on flags), so that JAX batches each body once. What stays
-    unbatched (the reference attitude a batch shares) stays so. The scalarized programs
-    do the same on their flat components (`sc.settle_batched`, part of ``"scalarize"``).
+    Under ``vmap`` with the ``"settle"`` pass, each loop's carry components that its body
+    would batch are batched before it (`settle.batched_carries`), so JAX batches each body
+    once; what never depends on the batch stays unbatched (docs/engine.md, "Loops that start
+    settled"; tests/test_engine.py::test_batched_array_loops_start_settled).
     """
 
     def __init__(self, closed, out_tree):
@@ -173,8 +132,7 @@ class _Traced:
         self.pending = None
 
     def __call__(self, *args):
-        # The decisions of the unbatched program, which `custom_vmap` also traces when a
-        # batch then runs its rule instead: `_dual` keeps them only for an unbatched call.
+        # deferred: `_dual` keeps these decisions only if no batch rule replaces the call
         with _plan.deferred() as self.pending:
             return self._eval(jax.tree.leaves(args), None, None)
 
@@ -262,8 +220,8 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
             index = cut_index(args) if cuts else None
 
             def runs(*args):
-                if index is not None:  # the loops settle their carry's batching up front
-                    # (`sc.settle_batched`)
+                if index is not None:
+                    # the loops settle their carry's batching up front (`sc.settle_batched`)
                     def cut(one, *a):
                         return scalar_fn(*a, cut=index, batched=in_batched, one=one)
 

@@ -1,23 +1,14 @@
 """A linear map with a custom transpose that also batches: so3jax's own primitive.
 
 ``linear_call(fun, fun_transpose, residual_args, linear_args)`` has the contract of
-`jax.custom_derivatives.linear_call`: ``fun(res, lin)`` is linear in ``lin``,
-``fun_transpose(res, ct)`` is its transpose, and the transpose of the call is a call of
-``fun_transpose`` whose own transpose is ``fun``. JAX's primitive for it has no
-batching rule, so ``vmap`` of a gradient through it raises. Rather than add a rule to
-JAX's tables for JAX's primitive (which every program in the process would then run),
-so3jax defines its own primitive, ``so3jax_linear_call``, and gives it the rules it
-needs: evaluation and lowering (the callee's jaxpr), JVP (linear in ``lin``; moved
-residuals, a second derivative, get JAX's ``jvp`` of the callee), transpose (the call
-of ``fun_transpose``), and batching (the callee and the transpose vmapped, linear
-inputs batched in front). This is the pattern
-of equinox's `filter_primitive_*` helpers. Nothing here touches a primitive so3jax did
-not define.
+`jax.custom_derivatives.linear_call`, whose primitive has no batching rule. so3jax's own,
+``so3jax_linear_call``, has evaluation and lowering (the callee's jaxpr), JVP, transpose (a
+call of ``fun_transpose``, whose own transpose is ``fun``) and batching rules, as equinox's
+`filter_primitive_*` helpers do; nothing is registered for a primitive so3jax did not define
+(docs/engine.md, "so3jax's own linear_call"; tests/test_linear_call.py).
 
-The rules use JAX's rule tables for a new primitive (`jax.interpreters.ad`,
-`jax.interpreters.batching`, `jax.interpreters.mlir`) and `jax.extend.core`. Where one
-of them is missing (a JAX release that moved them), `AVAILABLE` is False: the engine then
-runs its reference programs (JAX's own autodiff) and warns once (`so3jax._engine`).
+`AVAILABLE` is False where JAX lacks the rule tables (`jax.interpreters.ad`, ``batching``,
+``mlir``, `jax.extend.core`): the engine then runs its reference programs and warns once.
 """
 
 from __future__ import annotations
@@ -65,23 +56,19 @@ def linear_call(
     **Arguments:**
 
     - `fun`: ``(res, lin) -> out``, linear in ``lin`` (pytrees of arrays).
-    - `fun_transpose`: ``(res, ct) -> lin_ct`` with ``ct`` shaped as ``out`` and
-      ``lin_ct`` as ``lin``. Traced when a transpose is needed (lazily, as JAX's
-      ``linear_call`` does): it should get what it needs from ``res``.
+    - `fun_transpose`: ``(res, ct) -> lin_ct``, ``ct`` shaped as ``out`` and ``lin_ct`` as
+      ``lin`` (`TypeError` otherwise). Traced lazily, when a transpose is needed: it should
+      take what it needs from ``res``.
     - `residual_args`, `linear_args`: pytrees of arrays.
-    - `symbolic_zeros`: if true, ``fun_transpose`` gets ``None`` for each cotangent
-      leaf that is a symbolic zero (an output the differentiated function does not
-      use), so that it can leave out the work for it; otherwise zeros.
-    - `differentiable`: ``(res, lin) -> out``, the same map as ``fun`` in operations JAX
-      differentiates and batches itself: what a second derivative differentiates (the
-      call's, and its transpose's as JAX's transpose of it) where the residuals move.
-      Default: ``fun`` as traced.
-    - `out_shapes`: leaves shaped as ``fun``'s output (``jax.ShapeDtypeStruct`` or arrays,
-      whose shapes and dtypes alone are read), in its structure. Given, ``fun`` is
-      traced when the call is evaluated, lowered or differentiated again, not when it is
-      bound: reverse mode, which needs only ``fun_transpose``, never traces it. ``fun``
-      must then close over no traced value (`ValueError` when it is traced), and a wrong
-      shape raises there too.
+    - `symbolic_zeros`: if true, ``fun_transpose`` gets ``None`` for each cotangent leaf
+      that is a symbolic zero (an unused output), else zeros.
+    - `differentiable`: ``(res, lin) -> out``, ``fun`` in operations JAX differentiates and
+      batches itself, for second derivatives (of the call or its transpose) where the
+      residuals move. Default: ``fun`` as traced.
+    - `out_shapes`: ``fun``'s output leaves (``jax.ShapeDtypeStruct`` or arrays), in its
+      structure. Given, ``fun`` is traced only when the call is evaluated, lowered or
+      differentiated again, never by reverse mode alone; a wrong shape, or ``fun`` closing
+      over a traced value, then raises `ValueError`.
 
     **Returns:** ``fun(residual_args, linear_args)``.
     """
@@ -169,10 +156,9 @@ class _Callee:
 
 
 def _bind(flat_fun: Callable, res: list, lin: list, transpose: Callable, diff=None) -> list:
-    """Trace ``flat_fun(*res, *lin)`` and bind it; values it closes over become
-    leading constant operands (so the primitive holds no tracer of this trace).
-    ``diff(*res, *lin)``: the same map, for second derivatives (`linear_call`'s
-    ``differentiable``), kept only where it closes over no traced value."""
+    """Trace ``flat_fun(*res, *lin)`` and bind it; closed-over values become leading constant
+    operands (no tracer of this trace in the primitive). ``diff``: `linear_call`'s
+    ``differentiable``, dropped where it closes over a traced value."""
     closed = jax.make_jaxpr(flat_fun)(*res, *lin)
     return _bind_callee(_Callee(closed.jaxpr), list(closed.consts), res, lin, transpose, diff)
 
@@ -210,8 +196,7 @@ def _jvp(primals, tangents, *, jaxpr, n_consts, n_res, transpose, diff):
     params = dict(jaxpr=jaxpr, n_consts=n_consts, n_res=n_res, transpose=transpose, diff=diff)
     n_pre = n_consts + n_res
     if not all(type(t) is ad.Zero for t in tangents[:n_pre]):
-        # moved residuals (a second derivative): JAX's jvp of the callee, value and
-        # tangent; of its differentiable form where it has one (`linear_call`)
+        # moved residuals (a second derivative): JAX's jvp of ``diff``, else of the callee
         nz = [type(t) is not ad.Zero for t in tangents]
         xs = [p for p, z in zip(primals, nz, strict=True) if z]
         use_diff = diff is not None and not any(nz[:n_consts])
@@ -279,7 +264,7 @@ def _transpose(cts, *args, jaxpr, n_consts, n_res, transpose, diff):
 def _batch(args, dims, *, jaxpr, n_consts, n_res, transpose, diff):
     params = dict(jaxpr=jaxpr, n_consts=n_consts, n_res=n_res, transpose=transpose, diff=diff)
     n_out = len(jaxpr.out_avals)
-    if all(d is None for d in dims):
+    if all(d is None for d in dims):  # left unbatched: docs/engine.md, "so3jax's own linear_call"
         return linear_call_p.bind(*args, **params), [None] * n_out
     size = next(a.shape[d] for a, d in zip(args, dims, strict=True) if d is not None)
     n_pre = n_consts + n_res
@@ -312,8 +297,8 @@ def _batch(args, dims, *, jaxpr, n_consts, n_res, transpose, diff):
 
 
 def _dropping_consts(fn: Callable, n_consts: int) -> Callable:
-    """``fn(*res, *lin)`` called as ``g(*consts, *res, *lin)``: the batched call's operands
-    lead with the unbatched constants, which ``fn`` closes over."""
+    """``fn(*res, *lin)`` called as ``g(*consts, *res, *lin)`` (``fn`` closes over the
+    batched call's unbatched constants)."""
     return lambda *a: fn(*a[n_consts:])
 
 

@@ -1,12 +1,9 @@
 """The reference programs: a plain ``lax.scan`` and its checkpointed segments.
 
-This is what a run is, before any pass: the step applied ``n_steps`` times under
-``lax.scan``, observed every ``save_every`` steps; and, for reverse mode, the same loop
-in segments of about ``sqrt(n_steps)`` steps under `jax.checkpoint`, whose memory grows
-like ``sqrt(n_steps)`` (Griewank & Walther, *Evaluating Derivatives*, SIAM 2008, ch. 12).
-Both are always available, never re-interpreted: with every pass off
-(``so3jax._engine.policy.using(passes=frozenset())``) and ``program="autodiff"``, a run
-is `Loop.fwd_checkpointed` differentiated and batched by JAX alone.
+For reverse mode, segments of about ``sqrt(n_steps)`` steps under `jax.checkpoint` (Griewank
+& Walther, *Evaluating Derivatives*, SIAM 2008, ch. 12). Never re-interpreted: with every pass
+off and ``program="autodiff"``, a run is `Loop.fwd_checkpointed`, differentiated and batched
+by JAX alone.
 """
 
 from __future__ import annotations
@@ -20,11 +17,8 @@ from .policy import current
 
 
 def _segment_blocks(n: int, target: int) -> int:
-    """Blocks per segment: a divisor of ``n`` within 2x of ``target`` if there is one.
-
-    A divisor needs no padded tail (whose masks cost a select per carry leaf
-    and step); otherwise ``target`` itself, and the last segment is padded.
-    """
+    """Blocks per segment: a divisor of ``n`` within 2x of ``target`` (no padded tail, whose
+    masks cost a select per carry leaf and step) if there is one, else ``target``."""
     target = max(1, min(n, target))
     for d in sorted(
         range(max(1, target // 2), min(n, 2 * target) + 1), key=lambda d: abs(d - target)
@@ -42,12 +36,8 @@ def checkpoint_length(n_steps: int) -> int:
 class Loop:
     """The reference programs of one fixed-step loop: ``lax.scan`` of the step as written.
 
-    ``step(P, c) -> c`` and ``observe(P, c) -> pytree`` are pure; the loop takes
-    ``n_steps`` steps and observes after every ``save_every``-th. `fwd_array` is the
-    plain program; `fwd_checkpointed` the same in checkpointed segments of about ``K``
-    steps, what JAX's autodiff differentiates on the reference path. Every other
-    program of the engine (`so3jax._engine.programs.Programs`) equals these to
-    round-off.
+    ``step(P, c) -> c`` and ``observe(P, c) -> pytree`` are pure. Every other program of the
+    engine (`so3jax._engine.programs.Programs`) equals `fwd_array` to round-off.
     """
 
     def __init__(self, step, observe, n_steps: int, save_every: int, K: int):
@@ -86,8 +76,6 @@ class Loop:
         unroll = current().scan_unroll if self.save_every == 1 else 1
         return jax.lax.scan(block, x0, None, length=self.n_save, unroll=unroll)
 
-    # ---------------- forward ----------------
-
     def fwd_array(self, P, c0):
         cN, ys = self.save_loop(lambda c: self.step(P, c), lambda c: self.observe(P, c), c0)
         return ys, cN
@@ -95,20 +83,16 @@ class Loop:
     def fwd_checkpointed(self, P, c0):
         """The array program with checkpointed segments: what plain autodiff differentiates.
 
-        Save blocks are grouped into segments of about ``K`` steps, each under
-        `jax.checkpoint`, so reverse mode stores one carry per segment and
-        recomputes a segment's residuals when it transposes it: memory
-        ``~ n / K + K`` steps instead of ``n``. The last segment is padded
-        with blocks that leave the carry alone.
+        Segments of about ``K`` steps: reverse mode stores one carry per segment and
+        recomputes its residuals, memory ``~ n / K + K`` steps instead of ``n``.
         """
         ys, cN, _ = self._in_segments(P, c0, self.blocks_per_segment, checkpoint=True)
         return ys, cN
 
     def _in_segments(self, P, c0, m: int, checkpoint: bool = False, starts: bool = False):
         """``(ys, cN, ck)``: `fwd_array`'s run as ``ceil(n_save / m)`` segments of ``m`` save
-        blocks (each under `jax.checkpoint` with ``checkpoint``), the last padded with
-        blocks that leave the carry alone; ``ck``: the carry at each segment's start
-        with ``starts``, else ``None``."""
+        blocks (under `jax.checkpoint` with ``checkpoint``; the last padded); ``ck``: the
+        carry at each segment's start with ``starts``, else ``None``."""
         step, obs = self.step, self.observe
         S = -(-self.n_save // m)
         padded = S * m != self.n_save

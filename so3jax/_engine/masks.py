@@ -1,9 +1,7 @@
 """Which values can carry a tangent: an abstract walk over a step's jaxpr.
 
-`_tangent_masks` finds the float leaves of the parameters and the carry whose tangents
-can be nonzero (a fixed point over the step), so the derivative programs carry tangents
-for those leaves only: with the gains differentiated, the reference attitude, the time
-and the status stay out. Nothing runs: the walk tracks element masks in NumPy.
+`_tangent_masks` flags the float leaves whose tangents can be nonzero, so the derivative
+programs carry tangents for those only. Nothing runs: the walk tracks element masks in NumPy.
 """
 
 from __future__ import annotations
@@ -18,16 +16,8 @@ from .trees import _is_float
 
 
 def _depends(fn, args: list, dep: list) -> list:
-    """Which outputs of ``fn(*args)`` can have a tangent from the arguments flagged in ``dep``.
-
-    An abstract walk over ``fn``'s jaxpr (nothing runs) that tracks every
-    array element: a step that stacks the body's and the reference's attitudes
-    into one array and slices them apart again keeps them apart here (a walk
-    over whole arrays would not). Integer and boolean values carry no tangent,
-    nor does the predicate of a ``select_n`` (a freeze on failure selects
-    between states by a flag computed from all of them). Unknown primitives
-    are taken whole, which can only over-approximate.
-    """
+    """Which outputs of ``fn(*args)`` can have a tangent from the arguments flagged in ``dep``
+    (`_mask_eval` over ``fn``'s jaxpr)."""
     return _jaxpr_depends(_abstract_jaxpr(fn, args), args, dep)
 
 
@@ -85,7 +75,12 @@ def _dot_mask(lhs, rhs, dimension_numbers) -> np.ndarray:
 
 
 def _mask_eval(jaxpr, ins: list) -> list:
-    """Element masks of ``jaxpr``'s outputs: which entries depend on the masked inputs."""
+    """Element masks of ``jaxpr``'s outputs: which entries depend on the masked inputs.
+
+    Per element, so stacked and sliced-apart attitudes stay apart. Integers, booleans and a
+    ``select_n``'s predicate carry no tangent; an unknown primitive is taken whole (an
+    over-approximation only).
+    """
     env = dict(zip(jaxpr.invars, ins, strict=True))
 
     def read(v):
@@ -114,12 +109,11 @@ def _mask_eval(jaxpr, ins: list) -> list:
             elif name in sc._ELEMENTWISE:
                 ys = xs[1:] if name == "select_n" else xs
                 outs = [np.logical_or.reduce([np.broadcast_to(y, shapes[0]) for y in ys])]
-            elif name == "cond":  # the index is an integer: no tangent flows through it
+            elif name == "cond":  # the index is an integer: no tangent
                 per = [_mask_eval(b.jaxpr, xs[1:]) for b in prm["branches"]]
                 outs = [np.logical_or.reduce(ms) for ms in zip(*per, strict=True)]
             elif name in sc.CALL_PRIMITIVES and isinstance(inner, jex_core.Jaxpr):
-                # (Loops are taken whole below: a loop's body walked once would miss
-                # what a later iteration makes depend.)
+                # (not loops: one walk of a body misses what later iterations make depend)
                 outs = _mask_eval(inner, xs)
             else:
                 raise KeyError(name)
@@ -136,21 +130,13 @@ def _mask_eval(jaxpr, ins: list) -> list:
 def _tangent_masks(
     step, P, c0, nz_P: list, nz_c: list, elements: bool = False, cache: dict | None = None
 ) -> tuple:
-    """Float leaves of ``P`` and of the carry whose tangents can be nonzero.
+    """``(mP, mc)``: the float leaves of ``P`` and of the carry whose tangents can be nonzero.
 
-    ``nz_P``, ``nz_c`` flag the float leaves with nonzero input tangents. A
-    carry leaf is masked if its initial tangent is nonzero or a step makes it
-    depend on a masked leaf (a fixed point over the step's jaxpr): with the
-    gains differentiated, the reference attitude, the time and the status stay
-    out of the derivative programs.
-
-    ``elements=True`` adds a third result: per leaf of ``(P, c0)`` (every leaf), the
-    element mask of what can have a nonzero tangent, from the same fixed point run
-    on elements. It is finer than the leaf flags: a body and a reference attitude
-    stacked in one carry leaf are told apart (`Programs.obs_kinds`).
-
-    ``cache``: the step's jaxprs by the shapes of ``(P, c0)`` (`Loop.jaxprs`), so that a
-    loop's step is traced once for all its masks.
+    ``nz_P``, ``nz_c`` flag the float leaves with nonzero input tangents; a carry leaf is
+    flagged if its own is or a step makes it depend on a flagged leaf (a fixed point over
+    the step's jaxpr). ``elements=True`` adds, per leaf of ``(P, c0)``, the element mask from
+    the same fixed point on elements (`Programs.obs_kinds`). ``cache``: the step's jaxprs by
+    argument shapes (`Loop.jaxprs`), so a loop's step is traced once.
     """
     pl, pt = jax.tree.flatten(P)
     cl, ct = jax.tree.flatten(c0)

@@ -1,14 +1,8 @@
 """What the engine executes for a call, and why: `explain`.
 
-The engine decides at trace time how a run executes (`so3jax._engine`): the layout of
-each program (the array program, or the scalarized one for a large batch), whether it
-runs in tiles or with fusion cuts, whether its loops compile as one kernel, and how it
-is differentiated (the one-pass Jacobian, JAX's ``jvp`` of the checkpointed program, or
-the discrete adjoint). Each decision point calls `note`; `explain` traces a function
-(no compilation, no run) with a recorder installed and returns what was noted.
-
-The recorder is a `contextvars.ContextVar`: nothing is recorded outside `explain`, and
-nothing is shared between threads.
+Each trace-time decision of the engine calls `note`; `explain` traces a function with a
+recorder installed (a `contextvars.ContextVar`: nothing recorded outside `explain`, nothing
+shared between threads) and returns what was noted.
 """
 
 from __future__ import annotations
@@ -43,9 +37,8 @@ def noted_since(start: int, kind: str) -> bool:
 
 @contextlib.contextmanager
 def deferred():
-    """Record the decisions taken inside into a list of their own (yielded; ``None``
-    outside `explain`), for `extend` to keep or for the caller to drop: the trace of a
-    program that a batch then replaces is not what runs."""
+    """Record the decisions inside into a list of their own (yielded; ``None`` outside
+    `explain`), for `extend` to keep or the caller to drop (a trace a batch replaces)."""
     if _RECORDER.get() is None:
         yield None
         return
@@ -72,9 +65,8 @@ def note(kind: str, **details) -> None:
 
 
 def traced(fn: Callable, program: str) -> Callable:
-    """``fn`` recording a ``"traced"`` entry each time it runs, that is each time JAX
-    traces it, also inside a `deferred` block whose decisions are dropped: a trace costs
-    its time whether its decisions are kept or not. Wrapping twice records once."""
+    """``fn`` recording a ``"traced"`` entry each time JAX traces it, even inside a
+    dropped `deferred` block. Wrapping twice records once."""
     if getattr(fn, "_plan_program", None) == program:
         return fn
 
@@ -90,10 +82,9 @@ def traced(fn: Callable, program: str) -> Callable:
 
 
 def jit(fn: Callable) -> Callable:
-    """`equinox.filter_jit` of ``fn`` keyed by the engine's active policy
-    (`so3jax._engine.policy.current`): a call under another policy traces again, and
-    traces under that policy. Under `explain` ``fn`` is traced inline: a jitted function
-    whose trace is cached would not take its decisions again."""
+    """`equinox.filter_jit` of ``fn`` keyed by the active policy (`policy.current`): a
+    call under another policy traces again, under it. Traced inline under `explain`, so
+    its decisions are taken again."""
 
     def under(active, *args, **kwargs):
         with policy.using(active):
@@ -117,51 +108,30 @@ class Plan:
     **Fields:**
 
     - `entries`: a list of dicts, each with a ``"kind"``:
-        - ``"loop"``: a fixed-step loop handed to the engine (``n_steps``,
-          ``save_every``, ``program``: the caller's choice, ``"auto"`` by default);
-        - ``"layout"``: how one program runs (``program``: ``"run"`` for the forward
-          run, ``"jacobian"`` for the one-pass Jacobian, ``"adjoint"``, ``"jvp"`` for
-          second derivatives; ``runs``: the batch it
-          runs in, 1 for a single run; ``layout``: ``"array"`` or
-          ``"scalarized"``; ``tiles``: ``(n, size)``; ``cuts``: fusion cuts on);
-        - ``"derivative"``: how a run is differentiated (``strategy``:
-          ``"one-pass Jacobian"``, ``"checkpointed jvp"`` (JAX's autodiff of the
-          checkpointed array program), ``"checkpointed jvp, discrete adjoint"``
-          or ``"second derivative"``; ``scalars``: the differentiated scalars; ``why``;
-          for the one-pass Jacobian ``carried``: per float leaf of the loop's carry,
-          whether the tangent program carries its tangent, ``False`` for a leaf no
-          differentiated input reaches, such as the reference attitude under the
-          gains); the strategies are `so3jax._engine.derivatives`' objects;
-        - ``"adjoint"``: what the discrete adjoint's forward pass keeps for its backward
-          pass (``saved``): ``"residuals"``, every step's (``bytes_per_step`` over
-          ``steps``, within the policy's ``adjoint_residual_bytes``), or
-          ``"checkpoints"``, the carries at the starts of ``segments`` of
-          ``steps_per_segment`` steps, each replayed backward;
-        - ``"traced"``: the array program of ``program`` traced by JAX (the engine traces
-          each program once per call and batches that trace; every further entry is
-          tracing time spent again);
-        - ``"transpose"``: how a second derivative's tangent program is transposed
-          (reverse over reverse): ``by="columns"``, the program run once per unit
-          tangent through at most the policy's ``forward_jacobian_max`` ``scalars``,
-          or ``by="array program"``, JAX's transpose of the array program;
-        - ``"observations"``: what the one-pass Jacobian saves per observation leaf
-          (``saved``, in the order of the leaves): ``"none"`` (no differentiated input
-          reaches it: zeros outside the loop), ``"dense"`` (its full tangent), ``"right
-          frame"`` or ``"left frame"`` (a rotation's tangent as three numbers, ``R
-          hat(xi)`` or ``hat(xi) R``; the ``"frames"`` pass);
-        - ``"tiles"``: a batch run in ``n`` tiles of ``size`` runs, one after the other;
-        - ``"settle"``: a loop started where JAX's fixed point over its carry ends
-          (``what``: ``"batched carry"`` with the ``components`` batched before the
-          loop, or ``"carry tangents"`` with the ``leaves`` given zero tangents);
-        - ``"frames"``: a scalarized Jacobian program carrying ``rotations`` attitude
-          tangents as three numbers (0: every rotation's tangent as nine);
-        - ``"hoisting"``: whether a loop compiles as one kernel on a CPU (``hoisted``,
-          ``why`` when not).
-    - `passes`: the optimisation passes the engine's policy runs (sorted names).
+        - ``"loop"``: a fixed-step loop (``n_steps``, ``save_every``, ``program``, ``"auto"``
+          by default).
+        - ``"layout"``: how ``program`` (``"run"``, ``"jacobian"``, ``"adjoint"``, ``"jvp"``)
+          runs a batch of ``runs``: ``layout`` (``"array"``, ``"scalarized"``), ``cuts``, ``why``.
+        - ``"derivative"``: a run's ``strategy`` (``"one-pass Jacobian"``, ``"checkpointed jvp"``,
+          ``"checkpointed jvp, discrete adjoint"``, ``"second derivative"``;
+          `so3jax._engine.derivatives`), ``scalars``, ``why``; for the one-pass Jacobian,
+          ``carried``: per float carry leaf, whether its tangent is carried.
+        - ``"adjoint"``: what the discrete adjoint keeps: ``saved="residuals"`` (``bytes_per_step``,
+          ``steps``) or ``"checkpoints"`` (``segments``, ``steps_per_segment``).
+        - ``"traced"``: JAX traced ``program``; each further entry for it is tracing spent again.
+        - ``"transpose"``: a second derivative's transpose, ``by="columns"`` (at most
+          ``forward_jacobian_max`` ``scalars``) or ``"array program"``.
+        - ``"observations"``: what the one-pass Jacobian saves per observation leaf (``saved``):
+          ``"none"``, ``"dense"``, ``"right frame"`` (``R hat(xi)``) or ``"left frame"``.
+        - ``"tiles"``: ``program``'s batch of ``runs`` run as ``n`` tiles of ``size``.
+        - ``"settle"``: a loop started at JAX's fixed point over its carry (``what``:
+          ``"batched carry"`` with ``components``, or ``"carry tangents"`` with ``leaves``).
+        - ``"frames"``: ``rotations`` whose tangents a scalarized Jacobian carries as 3 numbers.
+        - ``"hoisting"``: whether a loop is one CPU kernel (``hoisted``, ``runs``; else ``why``).
+    - `passes`: the passes the active policy runs (sorted names).
     """
 
     entries: list
-    #: The optimisation passes the active policy runs (`so3jax._engine.policy.PASSES`).
     passes: tuple = ()
 
     def of(self, kind: str) -> list:
@@ -181,16 +151,12 @@ class Plan:
 def explain(fn: Callable, *args, **kwargs) -> Plan:
     """What the engine will execute for ``fn(*args, **kwargs)``, and why.
 
-    ``fn`` is traced, not compiled or run (as `jax.make_jaxpr` does); so3jax's own
-    jitted entry points trace inline, so that every decision is taken again and
-    recorded. Pass ``fn`` itself, not ``jax.jit(fn)``: a jitted function that has run
-    before reuses its cached trace, and the plan would be empty. Use it to see why a
-    call is slow: which layout a batch runs in, and how a gradient is taken.
+    ``fn`` is traced, not compiled or run. Pass ``fn`` itself, not ``jax.jit(fn)``: a
+    jitted function reuses its cached trace, and the plan would be empty.
 
     **Arguments:**
 
-    - `fn`: a function that runs so3jax (e.g. ``jax.grad`` of a cost, ``jax.vmap``
-      of `so3jax.simulate`).
+    - `fn`: a function that runs so3jax (e.g. ``jax.grad`` of a cost).
     - `args`, `kwargs`: its arguments (arrays, or `jax.ShapeDtypeStruct`).
 
     **Returns:** a `Plan`; ``print(plan)`` lists the decisions.

@@ -1,19 +1,12 @@
 """The engine's derivative programs of one loop, in the array layout.
 
-`Programs` extends the reference `so3jax._engine.loop.Loop` with:
+`Programs` extends `so3jax._engine.loop.Loop` with the Jacobian program (`jac_array`; its
+scalarized layout is `so3jax._engine.passes.scalarized`'s) and the discrete adjoint, from
+residuals kept by the forward pass (`fwd_residuals`) or replayed from checkpointed segments
+(`fwd_segments`). Each equals JAX's derivative of the reference to round-off
+(``tests/test_engine.py``, ``tests/passes/``).
 
-- the Jacobian program (the primal once and ``n`` unit tangents batched over it; its
-  scalarized layout, with attitude tangents as three numbers, is the ``"scalarize"``
-  pass's, `so3jax._engine.passes.scalarized`);
-- the discrete adjoint: a backward scan over save blocks through the differentiated
-  leaves alone, from every step's residuals kept by the forward pass (`fwd_residuals`,
-  `adj_residuals`) or replayed from checkpointed segments (`fwd_segments`,
-  `adj_segments`).
-
-Each equals JAX's own derivative of the reference to round-off
-(``tests/test_engine.py``, ``tests/passes/``). References: A. Griewank, A. Walther,
-*Evaluating Derivatives*, SIAM 2008 (vector forward mode and discrete adjoints, ch. 3;
-checkpointing, ch. 12).
+References: Griewank & Walther, *Evaluating Derivatives*, SIAM 2008, ch. 3 and 12.
 """
 
 from __future__ import annotations
@@ -39,20 +32,15 @@ from .trees import _fill, _floats, _pick, _with_floats
 
 
 class Programs(Loop):
-    """`Loop`'s reference programs with the scalarized layout and the derivative programs."""
+    """`Loop`'s reference programs and the derivative programs."""
 
     # ---------------- masked tangents ----------------
-    #
-    # The Jacobian programs carry tangents for the masked float leaves only: ``mP``
-    # flags the parameters being differentiated, ``mc`` the carry leaves whose
-    # tangent can be nonzero (`_tangent_masks`). Every other leaf is held at its
-    # primal value, so no operation pays for a tangent that is known to be zero.
+    # Only the float leaves flagged in ``mP``, ``mc`` (`_tangent_masks`) carry a tangent.
 
     @staticmethod
     def _masked(fn, mP, mc, P, c):
-        """``(g, Pm, cm)``: ``fn(P, c)`` as ``g(Pm, cm)``, a function of the float leaves of
-        ``P`` and ``c`` flagged in ``mP`` and ``mc`` (the others held at ``P`` and ``c``),
-        and those leaves."""
+        """``(g, Pm, cm)``: ``fn(P, c)`` as ``g(Pm, cm)`` of the float leaves flagged in ``mP``,
+        ``mc`` (the others held at ``P``, ``c``), and those leaves."""
         pf, cf = _floats(P), _floats(c)
 
         def g(Pm, cm):
@@ -61,9 +49,8 @@ class Programs(Loop):
         return g, _pick(mP, pf), _pick(mc, cf)
 
     def _step_masked(self, mc, P, c, valid=None):
-        """One step as a function with output the carry's float leaves flagged in ``mc``,
-        and the whole carry as auxiliary output; with ``valid`` false, no step (the padded
-        tail of the last segment)."""
+        """One step: ``(flagged float leaves, carry)``, or no step where ``valid`` is false (the
+        padded tail of the last segment)."""
         c1 = self.step(P, c)
         if valid is not None:
             c1 = jax.tree.map(lambda a, b: jnp.where(valid, a, b), c1, c)
@@ -82,20 +69,17 @@ class Programs(Loop):
         return P, c1, dP, dc1
 
     def _obs_tangents(self, mP, mc, x) -> tuple[list, list]:
-        """The observations after a state and their tangents as `frame_jvp` gives them
-        (``None``, an array or a `Frame`), as flat lists."""
+        """Flat lists of the observations and their tangents from `frame_jvp` (``None``, an
+        array or a `Frame`)."""
         P, c, dP, dc = x
         o, Pm, cm = self._masked(self.observe, mP, mc, P, c)
         outs, touts, _ = _jvp_with_frames(o, Pm, cm, dP, dc, _frame_flags(mc))
         return outs, touts
 
     def obs_kinds(self, mP, mc, P, c0, elements: list) -> tuple:
-        """Per observation leaf, its kind in the Jacobian programs (`OBS_ZERO`, ...): how
-        its tangent comes out of `frame_jvp` with the tangents ``mP``, ``mc`` (``mc``'s
-        `FRAME` leaves as frames), traced once, abstractly. `OBS_ZERO` too where no
-        element of it depends on the elements flagged in ``elements`` (per leaf of
-        ``(P, c0)``, `_tangent_masks`): the reference attitude observed from a carry
-        leaf that stacks it with the body's."""
+        """Per observation leaf, its kind in the Jacobian programs (`OBS_ZERO`, ...), traced
+        once, abstractly; `OBS_ZERO` too where no element depends on those flagged in
+        ``elements`` (`_tangent_masks`), e.g. a reference attitude stacked with the body's."""
         pl, pt = jax.tree.flatten(P)
         cl, ct = jax.tree.flatten(c0)
 
@@ -133,19 +117,15 @@ class Programs(Loop):
             _obs_tangent(o, t, k) for o, t, k in zip(outs, touts, mo, strict=True) if k != OBS_ZERO
         ]
 
-    # ---------------- Jacobian (a few inputs: primal and columns in one pass) ----------------
+    # ---------------- Jacobian (a few inputs) ----------------
 
     def jac_array(self, mP, mc, mo, P, c0, dP, dc0):
         """The run and its Jacobian's columns in one pass, array layout.
 
-        ``dP``, ``dc0`` are the masked tangents with a leading axis of ``n``
-        columns; the primal is computed once and the ``n`` tangents are batched
-        over it. Returns ``(ys, cN, dys, dcN)`` with a column axis after the
-        saved-point axis of ``dys`` and in front of ``dcN``. ``dys`` is a list: the
-        observations whose kind in ``mo`` (`obs_kinds`) is not `OBS_ZERO`, as their kind
-        stores them (`_obs_tangent`). Rotations' tangents are
-        nine numbers here whatever ``mc`` says (`FRAME`): as small arrays of their own,
-        three numbers cost more kernels than they save on a CPU.
+        ``dP``, ``dc0``: masked tangents with a leading axis of ``n`` columns, batched over
+        one primal. Returns ``(ys, cN, dys, dcN)``, the column axis after the saved-point
+        axis of ``dys`` and first in ``dcN``; ``dys`` lists the observations whose kind in
+        ``mo`` (`obs_kinds`) is not `OBS_ZERO`. Rotations' tangents are nine numbers here.
         """
         mc = _dense_mask(mc)
         tobs = functools.partial(self.observation_tangents, mP, mc, mo)
@@ -173,22 +153,14 @@ class Programs(Loop):
         _, c1, _, dc1 = self._jac_body(mP, _dense_mask(mc), (P, c, dP, dc))
         return c1, dc1
 
-    # ---------------- adjoint (reverse mode) ----------------
-    #
-    # The discrete adjoint runs save blocks backward, last first: at each the pullback of
-    # the observations a cost uses (at the carry after the block), then the pullbacks of
-    # the block's steps from their `jax.vjp` residuals. Those residuals are kept by the
-    # run's forward pass for every step (`fwd_residuals`), or replayed segment by segment
-    # from the carries at the segments' starts (`fwd_segments`, `adj_segments`). Only the
-    # float leaves flagged in ``mP`` and ``mc`` (`_tangent_masks`) are differentiated: the
-    # others have a zero tangent, and their entries of the gradients are zeros.
+    # ---------------- adjoint (docs/engine.md, "Through more scalars") ----------------
+    # Only the leaves flagged in ``mP``, ``mc`` are differentiated; the others' gradients are 0.
 
     def _replay(self, mP, mc, layout: list, P, c0, first, n_blocks: int, observe=True):
-        """``(cN, (ys, res, cs))``: ``n_blocks`` save blocks from ``c0`` (block indices from
-        ``first``; those past `n_save` leave the carry alone), keeping per step the residuals
-        of JAX's ``vjp`` of the step, packed (`_packed_vjp`; ``layout`` receives their
-        packing), stacked ``(n_blocks, save_every, ...)``; per block the observations
-        (``observe``) and the carry after it."""
+        """``(cN, (ys, res, cs))``: ``n_blocks`` save blocks from ``c0`` (indices from ``first``;
+        those past `n_save` leave the carry alone); per step the residuals of JAX's ``vjp`` of
+        the step, packed (`_packed_vjp`; ``layout`` gets the packing), ``(n_blocks, save_every,
+        ...)``; per block the observations (with ``observe``) and the carry after it."""
         padded = self.n_save % n_blocks != 0
 
         def one(j, c, _):
@@ -208,10 +180,9 @@ class Programs(Loop):
         return jax.lax.scan(block, c0, first + jnp.arange(n_blocks))
 
     def _backward(self, mP, mc, keep, layout: list, P, res, cs, ct_obs, carry):
-        """``(lam, acc)`` after the pullbacks of `_replay`'s blocks (``res``, ``cs``), last
-        first, from ``carry``: ``lam`` the cotangent of the carry's flagged leaves, ``acc``
-        the gradient of the flagged parameters. ``ct_obs``: per block, the cotangents of
-        the observations flagged in ``keep`` (the others' part is left out)."""
+        """``(lam, acc)``, the cotangents of the carry's and the parameters' flagged leaves, after
+        `_replay`'s blocks pulled back, last first, from ``carry`` and ``ct_obs`` (per block,
+        for the observations flagged in ``keep``)."""
 
         def observed(P, c):
             return _pick(keep, jax.tree.leaves(self.observe(P, c)))
@@ -243,18 +214,16 @@ class Programs(Loop):
         return gP, _fill(mc, lam, [jnp.zeros_like(c) for c in cf])
 
     def fwd_residuals(self, mP, mc, layout: list, P, c0):
-        """``((ys, cN), (res, cs))``: `fwd_array`'s run with what `adj_residuals` reads (every
-        step's residuals and the carry at every saved point, `_replay`). Memory: linear in
-        ``n_steps`` (the policy's ``adjoint_residual_bytes`` bounds it;
-        `so3jax._engine.derivatives.CheckpointedAdjoint`)."""
+        """``((ys, cN), (res, cs))``: `fwd_array`'s run with every step's residuals and the
+        carry at every saved point (`_replay`). Memory linear in ``n_steps`` (bounded by the
+        policy's ``adjoint_residual_bytes``)."""
         cN, (ys, res, cs) = self._replay(mP, mc, layout, P, c0, 0, self.n_save)
         return (ys, cN), (res, cs)
 
     def adj_residuals(self, mP, mc, keep, layout: list, P, saved, ct_obs, ct_cN):
-        """The discrete adjoint from `fwd_residuals`' ``saved``: ``(gP, gc0)``, the cotangents
-        of the float leaves of ``P`` and ``c0`` given ``ct_obs`` (one per saved point, for the
-        observation leaves flagged in ``keep`` only) and ``ct_cN`` (one per float leaf of
-        the final carry). One backward loop; nothing replayed."""
+        """The discrete adjoint from `fwd_residuals`' ``saved``: ``(gP, gc0)`` for the float
+        leaves of ``P``, ``c0``, given ``ct_obs`` (per saved point, for the observations flagged
+        in ``keep``) and ``ct_cN`` (per float leaf of the final carry). Nothing replayed."""
         res, cs = saved
         c0 = jax.tree.map(lambda a: a[0], cs)  # (its shapes only)
         back = functools.partial(self._backward, mP, mc, keep, layout, P, res, cs, ct_obs)
@@ -267,9 +236,9 @@ class Programs(Loop):
         return (ys, cN), ck
 
     def adj_segments(self, mP, mc, keep, P, c0, ct_obs, ct_cN, ck=None):
-        """The discrete adjoint from `fwd_segments`' carries ``ck`` (``None``: one segment,
-        from ``c0``): `adj_residuals`' ``(gP, gc0)``, each segment's residuals replayed
-        from its start (`_replay`), last segment first. Memory ``~ K + n / K`` steps."""
+        """The discrete adjoint from `fwd_segments`' carries ``ck`` (``None``: one segment),
+        as `adj_residuals`; each segment replayed from its start, last first. Memory
+        ``~ K + n / K`` steps."""
         m, S = self.blocks_per_segment, self.segments
 
         def per_segment(a):  # (n_save, ...) -> (S, m, ...), the padded tail zero
@@ -285,9 +254,7 @@ class Programs(Loop):
         cts = [per_segment(a) for a in ct_obs]
 
         def backward(carry):
-            if S == 1:  # its loops stand alone: XLA's older CPU emitter aborts on a loop over
-                # one segment hoisted whole ("All or none of the slices should have an
-                # explicit index")
+            if S == 1:  # no scan: XLA's older CPU emitter aborts on it hoisted whole
                 return segment(carry, (0, c0, [a[0] for a in cts]))[0]
             return jax.lax.scan(segment, carry, (jnp.arange(S), ck, cts), reverse=True)[0]
 
@@ -312,8 +279,7 @@ def _packed_pullback(layout: list, packed):
 
 def _pack(leaves: list) -> tuple[list, list]:
     """``(packed, spec)``: ``leaves`` raveled into one vector per dtype, and how to undo it
-    (`_unpack`). A step's residuals leave a loop as a few stacked arrays, not one each:
-    XLA compiles a kernel per stacked array and per read of it."""
+    (`_unpack`): XLA compiles a kernel per array a loop stacks and per read of it."""
     groups: dict = {}  # dtype -> raveled leaves, in order
     spec = []  # per leaf: (its dtype's index in ``groups``, its shape)
     for x in leaves:

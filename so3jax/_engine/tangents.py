@@ -1,11 +1,6 @@
 """Tangent plumbing the derivative strategies share: JAX's ``jvp`` through flagged
-leaves, linear maps with a custom transpose, and first-order-only residuals.
-
-`_linear_tangent` wraps a tangent program (linear in its tangents) as so3jax's own
-``linear_call`` primitive (`so3jax._engine.linear_call`), whose transpose runs the
-program once per unit tangent (`_transpose_by_columns`) or JAX's transpose of the plain
-array program. `forward_differentiated` gives a forward-mode-only program (a
-``while_loop``) a reverse mode that way. Nothing here registers anything with JAX.
+leaves, linear maps with a custom transpose (so3jax's own ``linear_call``), and
+first-order-only residuals. Nothing here registers anything with JAX.
 """
 
 from __future__ import annotations
@@ -34,11 +29,10 @@ from .trees import (
 
 
 def _float_tangent(fn: Callable, treedef, nz: list, out_nz: list) -> Callable:
-    """``tangent(xs, ts, others, **kw)``: JAX's ``jvp`` of ``fn`` at the leaves
-    ``others`` (``treedef``'s) with those flagged in ``nz`` set to ``xs`` and moved by
-    ``ts``; the tangents of its outputs flagged in ``out_nz`` (the float ones). A
-    ``batched`` keyword (a `custom_vmap` rule's flags of ``(xs, ts, others)``) reaches
-    ``fn`` as its own arguments' flags."""
+    """``tangent(xs, ts, others, **kw)``: JAX's ``jvp`` of ``fn`` at the leaves ``others``,
+    those flagged ``nz`` set to ``xs`` and moved by ``ts``; the output tangents flagged
+    ``out_nz``. A ``batched`` keyword (flags of ``(xs, ts, others)``) reaches ``fn``
+    as flags of its own arguments."""
 
     def tangent(xs, ts, others, **kw):
         if kw.get("batched") is not None:
@@ -54,8 +48,7 @@ def _float_tangent(fn: Callable, treedef, nz: list, out_nz: list) -> Callable:
 
 
 def _with_float0(out, out_nz: list, tan: list):
-    """The tangent tree of ``out``: ``tan`` for the leaves flagged in ``out_nz``, ``float0``
-    zeros for the others (integer and boolean outputs)."""
+    """The tangent tree of ``out``: ``tan`` where ``out_nz``, ``float0`` zeros elsewhere."""
     leaves = jax.tree.leaves(out)
     zeros = [
         None if k else np.zeros(jnp.shape(o), jax.dtypes.float0)
@@ -78,24 +71,16 @@ def _linear_tangent(
 ):
     """``fast(xs, ts, others)``, linear in ``ts``, transposable and differentiable.
 
-    ``fast`` (a `_dual`: a ``custom_vmap`` that JAX can neither partially evaluate nor
-    transpose) runs as the program of a ``linear_call``. Its transpose (``grad`` of
-    ``grad``): through at most the policy's ``forward_jacobian_max`` scalars of the ``ts`` flagged
-    ``real`` (the others are zeros that only settle loops), ``fast`` once per unit
-    tangent, contracted with the cotangent (`_transpose_by_columns`); through more,
-    JAX's transpose of ``plain`` (the same map on the array program). Behind a
-    ``custom_jvp`` whose rule is JAX's ``jvp`` of ``plain``, because a ``linear_call``
-    cannot differentiate its residuals: third derivatives. ``max_columns``: the
-    largest number of columns (default the policy's ``forward_jacobian_max``);
-    `forward_differentiated` takes columns whatever their number. ``adjoint(res, cts)``,
-    if given, is the transpose whatever the number of scalars, with ``None`` for each
-    cotangent that is a symbolic zero (`linear_call`'s ``symbolic_zeros``); a second
-    derivative through it (reverse over reverse) differentiates JAX's transpose of
-    ``plain`` instead (`linear_call`'s ``differentiable``). ``extra``: residuals only
-    ``adjoint`` reads, as ``res[2]`` (the map does not depend on them). ``out_shapes``
-    (with ``adjoint``): the tangent's shapes, so that ``fast`` is traced only where the
-    tangent is evaluated (forward mode), not under ``grad`` (`linear_call`'s
-    ``out_shapes``), under the policy active here.
+    ``fast`` (a `_dual`) runs as a ``linear_call``'s program; ``plain`` is the same map on
+    the array program, and JAX's ``jvp`` of it is the derivative (docs/engine.md, "Second
+    derivatives"). The transpose is ``fast`` once per unit tangent (`_transpose_by_columns`)
+    through at most ``max_columns`` (default ``forward_jacobian_max``) scalars of the ``ts``
+    flagged ``real`` (the others are zeros that only settle loops), else JAX's transpose
+    of ``plain``. ``adjoint(res, cts)``, if given, is the transpose instead (``None`` for
+    symbolic-zero cotangents; differentiated as ``plain``'s transpose); ``extra`` is what
+    only it reads (``res[2]``), and ``out_shapes`` the tangent's shapes, so ``fast`` is
+    traced (under the policy active here) only where the tangent is evaluated, not under
+    ``grad``.
     """
     shapes = [jax.ShapeDtypeStruct(jnp.shape(t), jnp.result_type(t)) for t in ts]
     n_real = sum(math.prod(s.shape) for s, r in zip(shapes, real, strict=True) if r)
@@ -103,7 +88,7 @@ def _linear_tangent(
     max_columns = active.forward_jacobian_max if max_columns is None else max_columns
 
     def callee(res, ts):
-        with using(active):  # (traced later with ``out_shapes``)
+        with using(active):  # traced later with ``out_shapes``
             return fast(res[0], ts, res[1])
 
     def transpose(res, cts):
@@ -142,11 +127,8 @@ def forward_differentiated(fn: Callable) -> Callable:
     """``fn`` with JAX's ``jvp`` of it as its derivative, behind a ``linear_call`` whose
     transpose runs that ``jvp`` once per unit tangent (`_transpose_by_columns`).
 
-    For programs JAX differentiates in forward mode only (a ``while_loop``: an adaptive
-    run through `diffrax.ForwardMode`, whose one-pass Jacobian is such a program): reverse
-    mode over their derivatives (``jacrev`` of ``jacfwd``, ``grad`` of a gradient's norm)
-    then works, instead of raising JAX's "Reverse-mode differentiation does not work for
-    lax.while_loop". Integer outputs get ``float0`` tangents.
+    Gives a forward-mode-only program (a ``while_loop``) a reverse mode over its
+    derivatives (``jacrev`` of ``jacfwd``). Integer outputs get ``float0`` tangents.
     """
 
     @jax.custom_jvp
@@ -169,14 +151,10 @@ def forward_differentiated(fn: Callable) -> Callable:
 
 
 def _transpose_by_columns(linear: Callable, cts, shapes: list, real: list) -> list:
-    """The transpose of ``linear`` (a linear map of arrays shaped as ``shapes``) at
-    ``cts``, from one run of ``linear`` per unit input of the arrays flagged ``real``
-    (under `jax.lax.map`: one program for all columns), each contracted with ``cts``.
-    The arrays not flagged get zero cotangents: only zeros ever enter there.
-
-    Reverse over reverse through a few gains (``jax.jacrev(jax.jacrev(cost))``) runs
-    this way several times faster, and compiles faster, than JAX's transpose of the
-    array program (`benchmarks/tune.py`'s Hessian rows).
+    """The transpose of ``linear`` (a linear map of arrays shaped ``shapes``) at ``cts``:
+    one run of ``linear`` per unit input of the arrays flagged ``real`` (under
+    `jax.lax.map`), contracted with ``cts``; zero cotangents for the others.
+    Measured against JAX's transpose by `benchmarks/tune.py`'s Hessian rows.
     """
     zeros = [jnp.zeros(s.shape, s.dtype) for s in shapes]
     cols = _unit_columns(_pick(real, zeros))
@@ -198,13 +176,8 @@ def _array_jvp(array_fn: Callable, primals, tangents):
     """JAX's ``jvp`` of ``array_fn`` through the nonzero tangents, its outputs batched as
     `_dual`'s batching rule batches them: every output, batch axis first.
 
-    JAX batches a ``custom_jvp`` call's function and its rule apart, and a jitted
-    batch (``vmap`` of `so3jax.rollout_cost`, say) fixes each output's batch axis
-    from the function's. `_dual`'s ``custom_vmap`` batches every output on axis 0;
-    JAX's ``vmap`` of a ``scan`` stacks on axis 0 and batches on axis 1, and leaves
-    unbatched what no batched input moves. `_batched_with` and `_front` make the two
-    agree, so that ``jax.hessian`` of the mean cost over a batch of starts
-    concatenates outputs batched alike.
+    JAX batches a ``custom_jvp``'s function and rule apart; `_batched_with` and `_front`
+    make them agree, so ``jax.hessian`` of a batch's mean cost concatenates like outputs.
     """
     leaves, treedef = jax.tree.flatten(primals)
     t_leaves, nz = _tangent_leaves(tangents)
@@ -213,8 +186,8 @@ def _array_jvp(array_fn: Callable, primals, tangents):
 
 
 def _jvp_through(fn: Callable, treedef, leaves: list, t_leaves: list, nz: list):
-    """JAX's ``jvp`` of ``fn(*unflatten(leaves))`` through the leaves flagged in ``nz``
-    alone (the others enter as constants: no tangent term where they are used)."""
+    """JAX's ``jvp`` of ``fn(*unflatten(leaves))`` through the leaves flagged ``nz`` alone
+    (the others are constants: no tangent term where they are used)."""
 
     def g(*xs):
         return fn(*jax.tree.unflatten(treedef, _fill(nz, xs, leaves)))
@@ -223,8 +196,8 @@ def _jvp_through(fn: Callable, treedef, leaves: list, t_leaves: list, nz: list):
 
 
 def _linear_call_batches() -> bool:
-    """Whether so3jax's own batching ``linear_call`` primitive (`so3jax._engine.linear_call`) is
-    available; where it is not, the engine runs its reference programs and says so once."""
+    """Whether so3jax's ``linear_call`` primitive is available; if not, the engine runs its
+    reference programs and warns once."""
     if not _linear_call.AVAILABLE:  # pragma: no cover - a JAX release that moved the tables
         warnings.warn(
             "so3jax: this JAX release lacks the rule tables so3jax's linear_call primitive "
@@ -241,10 +214,8 @@ _HAVE_LINEAR_CALL_BATCHING = _linear_call_batches()
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def first_order_only(why: str, res):
-    """``res`` (residuals of a ``linear_call``) unchanged; ``NotImplementedError(why)``
-    if they are differentiated, as in a second derivative: ``linear_call`` cannot
-    differentiate its residuals, and the error says why (JAX's is a bare
-    ``AssertionError``)."""
+    """``res`` (a ``linear_call``'s residuals) unchanged; ``NotImplementedError(why)`` if
+    differentiated (JAX's own error there is a bare ``AssertionError``)."""
     return res
 
 

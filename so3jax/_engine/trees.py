@@ -1,8 +1,7 @@
 """Pytrees split into float leaves (differentiable) and the rest; tangents and batch axes.
 
-Small helpers every program of the engine shares: picking and filling flagged leaves,
-tangent trees with ``float0`` zeros for integer leaves, unit tangent columns, and the
-zeros that make an output batched wherever an input is (`_batched_with`, `_front`).
+Helpers every engine program shares: flagged leaves, tangent trees with ``float0`` zeros,
+unit tangent columns, and outputs batched wherever an input is (`_batched_with`, `_front`).
 """
 
 from __future__ import annotations
@@ -61,9 +60,9 @@ def _tangent_leaves(tangents) -> tuple[list, list]:
 def _masked_tangents(nz, xs, mP, mc, pf, cf, lead=()) -> tuple[list, list]:
     """The tangents a masked tangent program takes: ``(dP, dc)``.
 
-    ``xs`` are the nonzero input tangents (the float leaves flagged in ``nz``,
-    parameters ``pf`` first, then carry ``cf``), each with leading shape
-    ``lead``. A masked carry leaf without an input tangent starts at zero.
+    ``xs``: the nonzero input tangents (float leaves flagged in ``nz``, parameters ``pf``
+    then carry ``cf``), each with leading shape ``lead``. A masked carry leaf without one
+    starts at zero.
     """
     full = _fill(nz, xs, [None] * len(nz))
     dP = _pick(mP, full[: len(pf)])
@@ -102,11 +101,8 @@ def _batch_by(x, one):
 
 
 def _component_flags(example, batched) -> list:
-    """Per scalar component of ``example`` (in `sc.split` order), its leaf's flag in ``batched``.
-
-    ``batched`` holds one flag per leaf of ``example`` (a `custom_vmap` rule's
-    ``in_batched`` for the same arguments).
-    """
+    """Per scalar component of ``example`` (in `sc.split` order), its leaf's flag in ``batched``
+    (one flag per leaf, as a `custom_vmap` rule's ``in_batched``)."""
     return [
         b
         for leaf, b in zip(jax.tree.leaves(example), jax.tree.leaves(batched), strict=True)
@@ -115,19 +111,13 @@ def _component_flags(example, batched) -> list:
 
 
 def _batched_with(out, inputs):
-    """``out`` with a zero added to each numeric leaf, computed from every numeric leaf
-    of ``inputs``: under ``vmap``, every output is batched wherever an input is.
+    """``out`` with a zero from every numeric leaf of ``inputs`` added to each numeric leaf
+    (values unchanged): under ``vmap``, every output is batched wherever an input is.
 
-    A ``custom_jvp`` function and its rule must agree on which outputs a batch
-    batches: ``vmap`` of a jitted run batches the function alone (its jaxpr), and
-    a later ``jvp`` of that batched program runs the rule in its place. The
-    engine's forward programs batch every output (`_dual`'s ``custom_vmap``
-    rule, ``program="array"`` included); JAX's ``jvp`` of the checkpointed array
-    program batches only the outputs that depend on a batched input or tangent
-    (the run's times, say, do not), so `so3jax._engine.derivatives.Autodiff` passes its outputs
-    through here: ``jacfwd`` and ``grad`` of the mean of a ``vmap`` over the
-    quadrotor's 12 gains then see every output batched. The zeros are ``where(False, ...)``
-    (not ``0 * x``: an infinite input stays out of the values), which XLA folds.
+    A ``custom_jvp`` function and its rule must batch the same outputs: `_dual` batches
+    every output, JAX's ``jvp`` only those a batched input moves (not the run's times:
+    tests/test_engine.py::test_derivatives_of_a_jitted_batch_through_more_than_8_scalars).
+    The zero is ``where(False, ...)``, not ``0 * x``, so an infinite input stays out.
     """
     srcs = [
         jnp.ravel(x)[0]

@@ -1,14 +1,13 @@
 """The ``"cuts"`` pass: fusion cuts where XLA on CPU would recompute shared values.
 
-XLA on CPU fuses cheap producers into every consumer, so a value read by several
-consumers is recomputed in each. A fusion cut (`fusion_cut`) is a boundary XLA does not
-fuse across: the value is computed once. Program in, program out: `_eval_with_cuts`
-evaluates a scalarized program's jaxpr with cuts placed where a value's cone reaches the
-policy's ``cut_cone`` (``column_cut_cone`` for values that tangent columns consume);
-`array_cut` / `derivative_cut` place them in the array programs' derivative rules.
-A cut returns its operands unchanged, so results are bit-for-bit those without:
-``tests/passes/test_cuts.py``. Speed: ``benchmarks/element_work.py``,
-``benchmarks/ablation.py``.
+A fusion cut (`fusion_cut`) is a boundary XLA does not fuse across, so a value with several
+consumers is computed once (docs/engine.md, "Fusion cuts"). Program in, program out:
+`_eval_with_cuts` evaluates a scalarized program's jaxpr with cuts where a value's cone
+reaches the policy's ``cut_cone`` (``column_cut_cone`` where tangent columns consume it);
+`array_cut` / `derivative_cut` place them in the array programs' derivative rules. A cut
+returns its operands unchanged, so results are bit-for-bit those without:
+``tests/passes/test_pass_cuts.py``. Speed: ``benchmarks/ablation.py`` (``no cuts``),
+``benchmarks/element_work.py``.
 """
 
 from __future__ import annotations
@@ -39,20 +38,10 @@ def _is_cut(branches) -> bool:
 def fusion_cut(values: list, index) -> list:
     """``values`` unchanged, but computed once: a boundary XLA does not fuse across.
 
-    XLA on CPU fuses elementwise operations into their consumers and duplicates
-    cheap producers into every consumer that needs them. In a scalarized step,
-    where every carry component is its own fusion, that recomputes the shared
-    part of the step once per output, a program many times the size of the step's.
-    `optimization_barrier`
-    does not stop it (the CPU compiler expands it into control dependencies
-    before fusing); a `lax.switch` whose branches all return their operands is
-    removed by JAX (outputs forwarded), and a two-way one with cheap branches
-    becomes a `select` in XLA and is fused away. What is kept is a three-way
-    switch whose first two branches are the identity and whose third (never
-    taken) returns zeros: its results are buffers, so what follows reads them.
-
-    ``index`` must be an unbatched int32 scalar, 0 or 1, whose value XLA
-    cannot know at compile time (`cut_index`).
+    A three-way switch whose first two branches are the identity and whose third (never
+    taken) returns zeros; simpler barriers are removed by JAX or fused away by XLA
+    (docs/engine.md, "Fusion cuts"). ``index``: an unbatched int32 scalar, 0 or 1, unknown
+    to XLA at compile time (`cut_index`).
     """
     if not values:
         return values
@@ -64,16 +53,9 @@ def fusion_cut(values: list, index) -> list:
 def array_cut_index(tree):
     """An index for `fusion_cut`s in the array programs, computed from ``tree``; or ``None``.
 
-    The array programs have the duplication `fusion_cut` describes too, where a
-    derivative rule's primal matrices (``exp(w) - I`` and ``R (exp(w) - I)``,
-    whose coefficients come from polynomials, not library calls) feed the
-    products of a batch of tangent columns: XLA recomputes the matrices, sines
-    and cosines included, in every element of each product. The rules cut them
-    with an index computed from their own primal inputs (`cut_index`: unbatched
-    under ``vmap``, unknown to XLA; through a ``stop_gradient``), so they need
-    nothing from their caller and close over no outer tracer. ``None`` (no
-    cuts) off CPU. The scalarizer drops these cuts (`_is_cut`): its programs
-    place their own (`_eval_with_cuts`).
+    A derivative rule passes its own primal inputs (taken through ``stop_gradient``), so it
+    needs nothing from its caller and closes over no outer tracer. ``None`` as `cut_index`.
+    The scalarizer drops these cuts (`_is_cut`) and places its own (`_eval_with_cuts`).
     """
     return cut_index(jax.lax.stop_gradient(tree))
 
@@ -88,10 +70,8 @@ def derivative_cut(*values) -> tuple:
     """``values`` unchanged; differentiated, the values and their tangents go through one
     `array_cut` (index from the values).
 
-    For what a run's derivative programs recompute but its forward pass does not, or
-    not enough to pay for a cut: a Runge-Kutta stage feeds every later stage. Cut there,
-    a batch's Jacobian program runs faster, but a single run, where a conditional per
-    stage costs more than the little work it saves, slower.
+    For what only the derivative programs recompute enough to pay for a cut (a Runge-Kutta
+    stage read twice; docs/engine.md, "Fusion cuts").
     """
     return values
 
@@ -107,12 +87,9 @@ def _derivative_cut_jvp(primals, tangents):
 def _cut_branches(avals: tuple) -> tuple:
     """The branches of a `fusion_cut` at these operand types, traced once per process.
 
-    What ``lax.switch(index, (ident, ident, never), values)`` would bind, without
-    tracing three branches for every cut: tracing the seed's 4096-run forward
-    program makes 49 cuts at 7 operand types, its B = 256 gradient 119 at 14;
-    and JAX batches a branch it has batched before from its cache (the same
-    jaxpr), so the cuts' branches are traced and batched that many times, not
-    three per cut.
+    What ``lax.switch(index, (ident, ident, never), values)`` would bind; one jaxpr per
+    types also lets JAX reuse its batching of a branch (``tests/test_scalarize.py``,
+    ``test_fusion_cut_branches_are_traced_once_per_operand_types``).
     """
     ident = jax.make_jaxpr(lambda *v: list(v))(*avals)
     never = jax.make_jaxpr(lambda *v: [jnp.zeros_like(x) for x in v])(*avals)
@@ -128,8 +105,7 @@ def _probe(xs):
 
 @_probe.def_vmap
 def _probe_rule(axis_size, in_batched, xs):
-    # Unbatched under vmap (the batch axis is read as data): a batched index would
-    # turn every cut into a `select`, which XLA fuses away.
+    # Unbatched: a batched index would turn every cut into a `select` XLA fuses away.
     return _probe(xs), False
 
 
@@ -141,12 +117,9 @@ def _is_probe(params) -> bool:
 def cut_index(tree):
     """An int32 scalar, 0 or 1, computed from data in ``tree`` (see `fusion_cut`).
 
-    It reads the first element of every floating-point leaf: any one of them
-    may be a constant XLA folds (a scene or a batch of starts closed over by
-    the caller's ``jit``), and a folded index would fold the cuts away with
-    it. It stays unbatched under ``vmap``. ``None`` (no cuts) off CPU, where a
-    conditional reads its index on the host, or when ``tree`` holds no
-    floating-point data, or with the ``"cuts"`` pass off.
+    It reads the first element of every floating-point leaf, since any one may be a
+    constant XLA folds (and the cuts with it); unbatched under ``vmap``. ``None`` (no cuts)
+    off CPU, without floating-point data in ``tree``, or with the ``"cuts"`` pass off.
     """
     if jax.default_backend() != "cpu" or not current().on("cuts"):
         return None
@@ -170,18 +143,11 @@ _EXPENSIVE = frozenset("div sqrt rsqrt cbrt sin cos tan exp exp2 expm1 log log1p
 def _eval_with_cuts(closed, args, index, cone_limit: int, columns=None):
     """Evaluate a jaxpr of scalar operations, cutting fusion where XLA would duplicate.
 
-    A value with several consumers whose not-yet-materialized cone (the cheap
-    operations XLA would recompute in each consumer) has at least ``cone_limit``
-    operations goes through a `fusion_cut`. Expensive operations with several
-    consumers XLA keeps by itself. Cuts wait until a consumer needs one, so
-    that independent values share a cut.
-
-    ``columns`` flags the inputs that a `vmap` around the program will batch (a
-    Jacobian's tangent columns, `so3jax._engine.passes.scalarized.columns_outside`). XLA fuses an
-    unbatched value's cone into each batched consumer and recomputes it for every
-    column: the primal part of the seed's Jacobian step, recomputed in the columns'
-    fusions, was a fifth of its work. So a value that a batched operation consumes is
-    cut from a cone of the policy's ``column_cut_cone`` operations on.
+    A value with several consumers whose cone (the cheap, not yet materialized operations
+    XLA would recompute in each) reaches ``cone_limit`` goes through a `fusion_cut` (XLA keeps
+    an `_EXPENSIVE` one itself); values waiting for a cut share one. ``columns`` flags the
+    inputs a `vmap` around the program batches (tangent columns, `scalarized.columns_outside`):
+    a value a batched operation consumes is cut from the policy's ``column_cut_cone`` on.
     """
     jaxpr = closed.jaxpr
     col = dict.fromkeys(jaxpr.constvars, False)

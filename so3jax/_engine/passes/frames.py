@@ -1,26 +1,12 @@
-"""Attitude tangents as three numbers: a forward-mode interpreter for the engine.
+"""The ``"frames"`` pass: attitude tangents as three numbers in the Jacobian programs.
 
-The engine's Jacobian programs (`so3jax._engine.programs.Programs.jac_array` /
-``scalarized.jacobian``) carry, for every differentiated input, the tangent of each carry leaf.
-JAX's ``jvp`` gives a rotation ``R`` a tangent of the same shape, nine numbers, although
-every tangent the group updates produce has the form ``dR = R hat(xi)``: three numbers
-in the body frame. Carried as nine, each update pays for a product of ``dR`` with a 3x3
-matrix (45 operations a column) where ``exp(w)^T xi`` costs about 15, and the controller
-forms ``dR^T Rd`` in full.
-
-`frame_jvp` is ``jax.jvp`` with such tangents allowed: an input tangent may be a
-`Frame`, ``xi`` with the primal's shape less its last axis, meaning ``R hat(xi)``
-(``left=True``: ``hat(xi) R``). It walks the function's jaxpr. Where an equation has
-no `Frame` input it is differentiated by JAX as one equation. Shape operations that
-leave the last two axes alone (slices, stacks, broadcasts, selects by a flag that is
-the same for the whole matrix) move a `Frame` as they move its matrix; a transpose of
-the last two axes turns a right `Frame` into a left one; custom-JVP functions with a
-registered rule (`frame_rule`: the group updates of `so3jax._so3`, the end of a step in
-`so3jax._state`, the tracking errors in `so3jax._control`) take and give `Frame`
-tangents directly. Anything else gets the dense tangent (``R hat(xi)``, 18 products,
-once per value) and JAX's own rule, so the result is always the ``jvp``; only where the
-rules reach is it cheaper. The rules are exact identities (``exp(w)`` is orthogonal),
-so the tangents equal JAX's to round-off.
+Program in, program out: `frame_jvp` is ``jax.jvp`` of a function's jaxpr with `Frame` input
+tangents, ``xi`` for ``R hat(xi)``: three numbers where JAX carries nine (docs/engine.md,
+"Attitude tangents as three numbers"). Shape operations move a `Frame` (`_moved`), custom-JVP
+functions with a `frame_rule` (in `so3jax._updates`, `_state`, `_control`, `_tune`) take and
+give them, anything else gets the dense tangent and JAX's rule. The rules are exact
+identities: tangents equal JAX's to round-off, ``tests/test_frames.py`` (rules),
+``tests/passes/test_pass_frames.py`` (programs). Speed: ``benchmarks/ablation.py``.
 """
 
 from __future__ import annotations
@@ -52,8 +38,7 @@ class Frame:
 
 
 def right_or_zero(t) -> bool:
-    """Whether a tangent is a right `Frame` (``R hat(xi)``) or zero (``None``): what the
-    rules of the group updates and errors take for a rotation."""
+    """Whether ``t`` is a right `Frame` or zero (``None``): what rules take for a rotation."""
     return t is None or (isinstance(t, Frame) and not t.left)
 
 
@@ -65,20 +50,14 @@ class FrameError(ValueError):
         self.indices = tuple(indices)
 
 
-#: custom-JVP function (by `_source_of`) -> rule ``(xs, ts) -> (outs, touts)`` or ``None``
-#: (no rule for these tangents: the caller densifies). ``ts`` entries: ``None`` (zero), an
-#: array, or a `Frame`.
+#: custom-JVP function (by `_source_of`) -> rule ``(xs, ts) -> (outs, touts)``, or ``None``
+#: for tangents it does not take (densified). ``ts`` entries: ``None`` (zero), array, `Frame`.
 _RULES: dict[str, Callable] = {}
 _DEBUG: list | None = None  # equations that densified a `Frame` (a test hook)
 
 
 def _source_of(fn) -> str:
-    """Where a function is defined, as ``"name at file:line"``: the key of its rule.
-
-    A ``jax.custom_jvp`` holds its function in ``.fun``; JAX records the same string for
-    the equation that calls it (``DebugInfo.func_src_info``), so a rule belongs to the
-    one function defined there, whatever its name elsewhere.
-    """
+    """``"name at file:line"`` of ``fn``: its rule's key, as JAX records it (`_called`)."""
     f = inspect.unwrap(getattr(fn, "fun", fn))
     code = f.__code__
     return f"{f.__name__} at {code.co_filename}:{code.co_firstlineno}"
@@ -116,9 +95,7 @@ def _is_float(aval) -> bool:
     return jnp.issubdtype(aval.dtype, jnp.inexact)
 
 
-# ---------------------------------------------------------------------------
 # Shape operations on the leading axes
-# ---------------------------------------------------------------------------
 
 
 def _keeps_matrix(in_shape, out_shape) -> bool:
@@ -150,8 +127,7 @@ def _moved(eqn, xs, ts, uniform):
         return Frame(ts[0].xi, left)
     if name == "convert_element_type":
         return Frame(ts[0].xi.astype(out_aval.dtype), left)
-    # Below, a matrix's shape (..., 3, 3) maps to its frame's (..., 3): the leading axes
-    # keep their numbers and the last axis of the frame stands for the matrix's two.
+    # Below, a matrix's axes (..., 3, 3) map to its frame's (..., 3): leading axes unchanged.
     if name == "slice":
         start, limit, strides = p["start_indices"], p["limit_indices"], p["strides"]
         if tuple(start[-2:]) != (0, 0) or tuple(limit[-2:]) != (3, 3):
@@ -209,9 +185,7 @@ _MOVES = frozenset(
 )
 
 
-# ---------------------------------------------------------------------------
 # The interpreter
-# ---------------------------------------------------------------------------
 
 
 def _jvp_eqn(eqn, xs, ts):
@@ -310,9 +284,7 @@ def _frame_eqn(eqn, xs, ts, uniform):
             return None, None
         return list(res[0]), list(res[1])
     if name == "cond" and cuts._is_cut(eqn.params["branches"]):
-        # A fusion cut (`so3jax._engine.passes.cuts.fusion_cut`) of values with `Frame` tangents and
-        # none dense: the values through it, the frames beside it (the operands after the
-        # index are its outputs, one to one).
+        # A fusion cut without dense tangents: frames pass beside it (operand i+1 -> output i).
         if any(t is not None and not isinstance(t, Frame) for t in ts):
             return None, None
         return cuts._bind(eqn, xs), list(ts[1:])
@@ -320,23 +292,18 @@ def _frame_eqn(eqn, xs, ts, uniform):
 
 
 def frame_jvp(fn: Callable, primals: list, tangents: list) -> tuple[list, list]:
-    """``jax.jvp`` of ``fn`` (flat: a list of arrays in, a list out) with `Frame`
-    tangents allowed in ``tangents`` (``None``: zero).
-
-    Returns the outputs and their tangents: ``None`` (zero), an array, or a `Frame`.
-    """
+    """``jax.jvp`` of ``fn`` (a list of arrays in, a list out) with `Frame` tangents
+    allowed in ``tangents`` (``None``: zero). Returns the outputs and their tangents
+    (``None``, an array or a `Frame`)."""
     closed = jax.make_jaxpr(fn)(*primals)
     res = _eval(closed.jaxpr, closed.consts, list(primals), list(tangents))
     return [o for o, _ in res], [t for _, t in res]
 
 
-# --------------------------------------------------------------------------
-# the Jacobian programs' carry and observations with `Frame` tangents
-# --------------------------------------------------------------------------
+# The Jacobian programs' carry and observations with `Frame` tangents
 
 
-#: A carry mask's flag for a leaf whose tangent the Jacobian programs carry as a
-#: `Frame`: ``xi`` of shape ``shape[:-2] + (3,)`` for ``dR = R hat(xi)``.
+#: A carry mask's flag: the leaf's tangent is carried as `Frame` ``xi`` (``dR = R hat(xi)``).
 FRAME = 2
 
 
@@ -362,8 +329,8 @@ def _from_frames(cm, dc, fr) -> list:
 
 
 def _jvp_with_frames(fn, Pm, cm, dP, dc, fr):
-    """`frame_jvp` of ``fn(Pm, cm)`` (a pytree out) with the carry tangents flagged in
-    ``fr`` given as `Frame` ``xi``: ``(out leaves, their tangents, out treedef)``."""
+    """`frame_jvp` of ``fn(Pm, cm)`` (a pytree out), the carry tangents flagged in ``fr``
+    given as `Frame` ``xi``: ``(out leaves, their tangents, out treedef)``."""
     tree = []
 
     def flat(*args):
@@ -377,10 +344,8 @@ def _jvp_with_frames(fn, Pm, cm, dP, dc, fr):
 
 
 def _frame_step(g, Pm, cm, dP, dc, fr):
-    """``(dc1, c1)``: `Programs.tangent_step`'s ``jvp`` of ``g`` (``-> (masked carry floats, c1)``)
-    with `Frame` carry tangents.
-
-    Raises `FrameError` naming the leaves whose tangent came out dense."""
+    """``(dc1, c1)``: `Programs.tangent_step`'s ``jvp`` of ``g`` (``-> (masked carry floats,
+    c1)``) with `Frame` carry tangents. Raises `FrameError` naming leaves that came out dense."""
     outs, touts, treedef = _jvp_with_frames(g, Pm, cm, dP, dc, fr)
     n = len(fr)  # the masked carry floats come first
     dc1, bad = [], []
@@ -398,9 +363,8 @@ def _frame_step(g, Pm, cm, dP, dc, fr):
     return dc1, jax.tree.unflatten(treedef, outs)[1]
 
 
-#: An observation's kind in the Jacobian programs (`Programs.obs_kinds`): no tangent (not
-#: computed; zeros outside), a dense one, or a `Frame` ``xi`` (right, left), three numbers
-#: per rotation that `_jacobian_jvp` turns dense after the loop.
+#: An observation's kind in the Jacobian programs (`Programs.obs_kinds`): no tangent (zeros
+#: outside), dense, or a `Frame` ``xi`` (right, left) that `_jacobian_jvp` densifies after the loop.
 OBS_ZERO, OBS_DENSE, OBS_RIGHT, OBS_LEFT = 0, 1, 2, 3
 #: The kinds as `so3jax.explain`'s plan names them (``"observations"`` entries).
 OBS_NAMES = {OBS_ZERO: "none", OBS_DENSE: "dense", OBS_RIGHT: "right frame", OBS_LEFT: "left frame"}
@@ -416,9 +380,8 @@ def _obs_kind(x, t) -> int:
 
 
 def _obs_tangent(x, t, kind: int):
-    """The tangent ``t`` of the observation ``x`` (``None``, an array or a `Frame`) as its
-    ``kind`` stores it: dense, or ``xi`` (``vee(R^T dR)`` or ``vee(dR R^T)`` from a dense one,
-    which for a rotation ``R`` is ``dR`` exactly in exact arithmetic)."""
+    """The tangent ``t`` of the observation ``x`` as its ``kind`` stores it: dense, or ``xi``
+    (from a dense ``dR``: ``vee(R^T dR)`` or ``vee(dR R^T)``, exact for a rotation ``R``)."""
     if kind == OBS_DENSE:
         return jnp.zeros_like(x) if t is None else dense(x, t)
     left = kind == OBS_LEFT
@@ -432,13 +395,8 @@ def _obs_tangent(x, t, kind: int):
 
 def _with_frames(mc, c0, nz_c) -> tuple:
     """``mc`` with `FRAME` for each masked carry leaf that may carry a `Frame`: rotation-
-    shaped, without an input tangent (it starts at zero, ``R hat(0)`` for any ``R``).
-
-    Whether a step keeps it a frame is found when the scalarized Jacobian program is
-    traced (`so3jax._engine.passes.scalarized.jacobian`, which falls back to nine numbers
-    for a leaf whose tangent comes out dense, such as LGVI's); the array layout always
-    carries nine.
-    """
+    shaped, without an input tangent (zero, ``R hat(0)``). `scalarized.jacobian` falls back to
+    nine numbers where a step makes it dense (LGVI); the array layout always carries nine."""
     return tuple(
         FRAME
         if current().on("frames") and m and not z and tuple(jnp.shape(x)[-2:]) == (3, 3)
@@ -448,16 +406,8 @@ def _with_frames(mc, c0, nz_c) -> tuple:
 
 
 def _frame_dense(R, xi, left: bool):
-    """``R hat(xi)`` (``left``: ``hat(xi) R``) for ``xi`` of shape ``R.shape[:-1]``, written
-    with splits and concatenations only, so that JAX's transpose (``grad`` of a cost on the
-    saved rotations) is elementwise too.
-
-    `dense` broadcasts ``xi`` over ``R``'s rows and slices both; JAX
-    transposes the broadcast into a sum over an axis of three (which XLA's CPU compiler
-    hands to a library reduction) and each slice into a pad. Here ``xi`` is concatenated
-    three times (transposed: three slices added) and components are split (transposed:
-    concatenated).
-    """
+    """``dense(R, Frame(xi, left))`` by splits and concatenations only, so that its transpose
+    has no reduction or pad: ``tests/test_engine.py::test_frame_dense_and_its_transpose``."""
     if left:  # hat(xi) R = -(R^T hat(xi))^T
         return -jnp.swapaxes(_frame_dense(jnp.swapaxes(R, -1, -2), xi, False), -1, -2)
     X = jnp.concatenate([xi[..., None, :].astype(R.dtype)] * 3, axis=-2)

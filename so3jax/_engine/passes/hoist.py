@@ -2,10 +2,9 @@
 
 Program in, program out: `_hoisted` takes a loop (a ``lax.scan`` and its arguments) and
 returns its results from the same loop, traced once, staged as a jitted call that XLA's
-older CPU emitter compiles whole (``xla_cpu_small_call``). Where it cannot (a primitive
-outside `_HOISTABLE`, a leaf over the policy's ``hoist_max_bytes``, a second derivative,
-another backend), the loop runs as traced. The results are the loop's, to round-off:
-``tests/passes/test_hoist.py``. Speed: ``benchmarks/emitters.py`` and
+older CPU emitter compiles whole (``xla_cpu_small_call``; docs/engine.md, "Loops as one
+kernel"). Where it cannot, the loop runs as traced. Results equal the loop's to round-off:
+``tests/passes/test_pass_hoist.py``. Speed: ``benchmarks/emitters.py``,
 ``benchmarks/ablation.py``.
 """
 
@@ -25,9 +24,8 @@ from ..policy import current, one_cpu_device
 from . import scalarize as sc
 from .unroll import _UNROLLED, _unrolled
 
-#: What is being traced, innermost last (`_tracing`): the runs in its batch (a vmapped
-#: program sees one run's shapes), whether its loops may be hoisted, and whether loops
-#: with reductions may.
+#: What is being traced (`_tracing`): the runs in its batch (a vmapped program sees one
+#: run's shapes), whether its loops may be hoisted, and whether loops with reductions may.
 _TRACING: contextvars.ContextVar[tuple] = contextvars.ContextVar(
     "so3jax_tracing", default=(1, True, True)
 )
@@ -37,16 +35,10 @@ _TRACING: contextvars.ContextVar[tuple] = contextvars.ContextVar(
 def _tracing(what: str, runs: int = 1):
     """Trace program ``what`` (a `_dual`'s) in a batch of ``runs`` runs.
 
-    - Nothing is hoisted inside the ``"jvp"`` programs of second derivatives
-      (`_dual_jvp`), nor in what they trace: hoisted, ``jax.hessian`` runs faster but
-      compiles more than twice as long, which a second derivative rarely repays.
-    - Only forward runs hoist loops with reductions; a derivative program's are written
-      out first (`_unrolled`). A derivative program's loop can be batched again after
-      `_hoisted` chose, by a ``vmap`` around a derivative JAX staged (no Python of ours
-      runs then), and its reductions would then grow past ``hoist_max_reduced``:
-      ``vmap`` of ``grad`` over 5 gain sets of the mean cost over 16 starts failed to
-      compile so ("Fusion kind not implemented on CPU"). A forward run is batched
-      through its own ``custom_vmap`` rule, which sizes it again.
+    Nothing is hoisted under a second derivative's ``"jvp"`` (`_dual_jvp`: it would compile
+    much longer). Only forward runs hoist loops with reductions: a ``vmap`` around a staged
+    derivative may batch them past ``hoist_max_reduced``
+    (``tests/test_engine.py::test_vmap_of_grad_around_hoisted_loops_compiles``).
     """
     n, hoist, _ = _TRACING.get()
     token = _TRACING.set(
@@ -58,12 +50,9 @@ def _tracing(what: str, runs: int = 1):
         _TRACING.reset(token)
 
 
-#: Primitives a hoisted loop may hold. XLA compiles the loop with its older CPU
-#: emitter, which refuses dots, convolutions, scatters and custom calls (linear
-#: algebra, callbacks, sorting, FFTs): a loop with anything not listed runs as before.
-#: ``pad``, ``split`` and ``empty2`` are what JAX's transpose of a step and of a loop
-#: adds (of ``slice``, ``concatenate``, and a loop's stacked residuals): the discrete
-#: adjoint's loops hold them.
+#: Primitives a hoisted loop may hold: XLA's older CPU emitter refuses dots, convolutions,
+#: scatters and custom calls. ``pad``, ``split`` and ``empty2`` are what JAX's transpose of a
+#: step or loop adds (the discrete adjoint's loops).
 _HOISTABLE = frozenset(
     """abs acos acosh add add_any and asin asinh atan atan2 atanh broadcast_in_dim cbrt ceil
     checkpoint clamp closed_call concatenate cond convert_element_type copy copy_p cos
@@ -93,9 +82,8 @@ def _hoistable(jaxpr, runs: int = 1, reductions: bool = True) -> bool:
 
 
 def _largest_inner(jaxpr) -> int:
-    """The bytes of the largest array made inside the bodies of ``jaxpr``'s equations (its
-    loops' and calls', at any depth): what one iteration of a loop holds, its stacked
-    inner loops included; not ``jaxpr``'s own inputs and outputs."""
+    """The bytes of the largest array made inside the bodies of ``jaxpr``'s loops and calls
+    (at any depth), not ``jaxpr``'s own inputs and outputs."""
     return max(
         (
             math.prod(v.aval.shape) * v.aval.dtype.itemsize
@@ -109,40 +97,12 @@ def _largest_inner(jaxpr) -> int:
 
 
 def _hoisted(loop: Callable, *args, xs_from: int | None = None):
-    """``loop(*args)`` (a `lax.scan`), compiled as one kernel on a CPU.
+    """``loop(*args)`` (a `lax.scan`), compiled as one kernel on a CPU where the policy and
+    XLA's older emitter allow, with its reductions written out (`_unrolled`) if only they
+    stand in the way; else run as traced. The plan notes the choice (``"hoisting"``).
 
     ``xs_from``: the index, among the leaves of ``args``, of the first one the loop scans
-    over (a ``scan``'s ``xs``); the policy's ``hoist_max_bytes`` counts those by the slice
-    one iteration reads, as the loop's work grows with that slice and not with its length.
-
-    XLA's CPU runtime runs a loop body as one kernel per fusion: some 300 a step
-    for the seed's batched forward pass, 640 for its Jacobian program, each
-    dispatched on its own and handed between the threads of XLA's pool. A call
-    tagged ``xla_cpu_small_call`` (and kept from inlining) is compiled whole into
-    one function by XLA's older CPU emitter, as XLA's own small-loop pass does
-    for loops under 1 kB (``xla_cpu_small_while_loop_byte_threshold``, a process
-    flag). That makes the seed's forward pass about three times faster, for a batch
-    and for a single run (``benchmarks/emitters.py``).
-
-    The loop's inputs pass an `optimization_barrier` first: XLA otherwise sinks
-    constant operands (a batch of starts closed over as a constant) into the call,
-    and the older emitter aborts on constants of more than about 10 kB. The call
-    also returns its inputs (unused): so they stay live to its end, and XLA cannot
-    hand an input's memory to a value inside the loop (a loop's carry in an input's
-    place, at the same offset, larger), on which the older emitter aborts the process
-    (``Check failed: slice_to_buffer_table_index_.empty() || has_explicit_index``, with
-    JAX 0.11 and 0.12: `test_engine.py::test_hoisted_call_returns_its_inputs`). A loop that
-    holds reductions where `_tracing` allows none (a derivative program's), or one
-    over more than ``hoist_max_reduced`` elements, is hoisted with its reductions written
-    out (`_unrolled`) if that is all that stood in the way. Loops with a primitive
-    outside `_HOISTABLE` or a reduction over more than ``unroll_max_terms`` terms and
-    ``hoist_max_reduced`` elements, loops whose largest input leaf takes more than
-    ``hoist_max_bytes`` over the batch or that make an array of ``hoist_max_inner`` or
-    more inside (`_largest_inner`), second derivatives' loops (`_tracing`), every
-    loop off a CPU, and every loop
-    where JAX sees more than one device run as before: XLA partitions a sharded program after
-    this choice, and a hoisted loop then calls collectives the older emitter cannot
-    link (``__xla_cpu_runtime_AllReduce``, ``__xla_cpu_runtime_PartitionId``).
+    over; ``hoist_max_bytes`` counts those by the slice one iteration reads.
     """
     runs, hoist, reductions = _TRACING.get()
     policy = current()
@@ -150,6 +110,8 @@ def _hoisted(loop: Callable, *args, xs_from: int | None = None):
         why = "off (the policy's passes)" if hoist else "a second derivative's loop"
         _plan.note("hoisting", hoisted=False, runs=runs, why=why)
         return loop(*args)
+    # Several devices: XLA partitions after this choice and the older emitter cannot link the
+    # collectives (tests/test_sweep.py::test_two_device_sharded_sweep_equals_single_device).
     if not one_cpu_device():
         _plan.note("hoisting", hoisted=False, runs=runs, why="not a single CPU device")
         return loop(*args)
@@ -180,11 +142,15 @@ def _hoisted(loop: Callable, *args, xs_from: int | None = None):
         outs = jex_core.jaxpr_as_fun(closed)(*leaves)
         return jax.tree.unflatten(jax.tree.structure(shape), outs)
     _plan.note("hoisting", hoisted=True, runs=runs, unrolled=hoisted is not closed)
+    # The barrier keeps XLA from sinking large constants into the call, on which the older
+    # emitter aborts: tests/test_engine.py::test_hoisting_keeps_out_what_one_kernel_cannot_hold.
     consts, leaves = jax.lax.optimization_barrier((list(hoisted.consts), leaves))
 
     @jax.jit
     def call(consts, leaves):
         outs = jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(hoisted.jaxpr, consts))(*leaves)
+        # Inputs kept live to the end, else the older emitter can abort on buffer reuse:
+        # tests/test_engine.py::test_hoisted_call_returns_its_inputs.
         return outs, (consts, leaves)
 
     with _jax.set_xla_metadata(xla_cpu_small_call="true", inlineable="false"):

@@ -1,33 +1,14 @@
 """Scalarization: run a small-array function as a program over scalar components.
 
-A step of an attitude integrator works on dozens of 3-vectors and 3x3 matrices.
-XLA on CPU turns such code into a hundred or more separate kernels per step
-(every reduction, `stack` and shape change ends a fusion), and each kernel
-launch costs far more than its arithmetic. Under `vmap` the
-batch axis goes in front of every small array, so the same kernels then also
-stride through memory (an array-of-structures layout).
+Program in, program out: `scalarize` traces a function once and evaluates its jaxpr with
+every array a NumPy *object* array of scalar components (JAX scalars, ``(B,)`` arrays under
+`vmap`): one flat elementwise program, the same primitives in the same order per component,
+still differentiable (docs/engine.md, "Scalarization"). A primitive outside `_ELEMENTWISE`
+and `_STRUCTURAL` raises `ScalarizeError`, and callers run the plain function.
 
-`scalarize` rewrites the function instead: it traces it once to a jaxpr at
-the given shapes and evaluates that jaxpr with every array replaced by a
-NumPy *object* array of its scalar components (each a JAX scalar, or a
-``(B,)`` array under `vmap`). Shape operations (`reshape`, `slice`,
-`broadcast_in_dim`, `concatenate`, `transpose`, ...) only rearrange
-components and emit nothing; elementwise operations apply per component;
-`dot_general` and reductions unroll into sums. What is left is one flat
-elementwise program over scalars, which XLA fuses into a few kernels; under
-`vmap` each component becomes a contiguous ``(B,)`` array: a structure-of-arrays
-layout with no transposes. The result is the same function (the same
-primitives, in the same order of operations per component), and it stays
-differentiable (it is made of JAX operations).
-
-Only the primitives a vector field or a step needs are supported (elementwise
-arithmetic and transcendental functions, comparisons and `select_n`, shape
-operations, `dynamic_slice` (a table read at a computed index), `dot_general`,
-sums/max/min reductions, nested `jit`, custom JVP/VJP calls and `cond`); anything
-else (loops, scatters and gathers, sorting) raises `NotImplementedError`, and callers
-fall back to the plain function. A large constant the function closes over (a table,
-`is_table`) stays one array: ``dynamic_slice`` reads it whole, any other use by its
-components.
+Equal to the array program to round-off: ``tests/passes/test_pass_scalarize.py``,
+``tests/test_scalarize.py``. Speed: ``benchmarks/ablation.py`` (``no scalarize``),
+``benchmarks/layouts.py``.
 """
 
 from __future__ import annotations
@@ -92,12 +73,8 @@ def from_components(c: np.ndarray, batch_shape=()) -> jax.Array:
 
 
 def _const(value, aval=None) -> np.ndarray:
-    """A literal or constant as components.
-
-    Concrete values become NumPy scalars, which `_elementwise` can fold at trace
-    time (multiplications by exact zeros and ones from `eye`, `hat`, ...);
-    traced values (closed over from an outer trace) stay JAX scalars.
-    """
+    """A literal or constant as components: NumPy scalars if concrete (folded by `_fold`),
+    JAX scalars if traced (closed over from an outer trace)."""
     if isinstance(value, jax.core.Tracer):
         arr = value
         conv = lambda v: v
@@ -111,18 +88,15 @@ def _const(value, aval=None) -> np.ndarray:
     return out
 
 
-#: Constants with more elements than this stay whole (`_Table`) until read otherwise than
-#: by ``lax.dynamic_slice``.
+#: Constants with more elements than this stay whole (`_Table`).
 TABLE_MIN = 64
 
 
 class _Table:
     """A large constant (a table: a `so3jax.Gust`'s path) kept whole.
 
-    ``lax.dynamic_slice`` reads it as JAX does (`_read_table`); any other use takes its
-    components (`_const`), once. A table read at a computed index then costs one gather
-    per read, whatever its length, and adds no component to the program.
-    """
+    ``lax.dynamic_slice`` reads it whole (`_read_table`: one gather, no component added);
+    any other use takes its components (`_const`), once."""
 
     def __init__(self, value):
         self.value = value
@@ -321,17 +295,11 @@ def _index_value(i: np.ndarray):
 
 
 def _dynamic_slice(x: np.ndarray, starts: list, slice_sizes) -> np.ndarray:
-    """`lax.dynamic_slice` over components: constant starts slice, computed ones select.
+    """`lax.dynamic_slice` over components: constant starts slice, computed ones gather.
 
-    A start is clamped to ``[0, n - size]`` as `lax.dynamic_slice` clamps it. Along an
-    axis with a computed start (a time read from a table: a `Gust`'s path), the
-    components along that axis are stacked into one array and indexed with JAX's
-    `dynamic_index_in_dim` (or a per-run `take_along_axis` where the start is batched):
-    one gather per output component, where a chain of selects would grow with the
-    table. Every entry of such a table is a component of its own (a loop carries it),
-    so one longer than the policy's ``scalarize_table_max`` raises `ScalarizeError`: its
-    batch runs the array program. (A table closed over as a constant stays whole and is
-    read by `_read_table` instead.)
+    Starts clamp as in `lax.dynamic_slice`. A computed start reads the stacked components
+    by `_take` (one gather per output component); along an axis longer than the policy's
+    ``scalarize_table_max`` it raises `ScalarizeError`.
     """
     out = x
     for axis, (start, size) in enumerate(zip(starts, slice_sizes, strict=True)):
@@ -494,9 +462,7 @@ def _apply(eqn, ins):
         return _closed(cj, ins)
     if name == "custom_vmap_call":
         if _is_probe(p):
-            # `cut_index`'s probe, whose only consumers are the cuts dropped below:
-            # evaluated, it would add a consumer to the values it reads, and
-            # `_eval_with_cuts` would cut them (a slower program).
+            # `cut_index`'s probe, not evaluated: its reads would add consumers, hence cuts.
             return [_const(np.int32(0))]
         return _closed(p["call"], ins)
     if name == "cond":
@@ -552,9 +518,9 @@ def _check(jaxpr) -> None:
 def scalarize(fn: Callable, *example_args) -> Callable:
     """``fn`` as a function over component arrays.
 
-    Traces ``fn(*example_args)`` (pytrees of arrays, single-trajectory shapes)
-    once, and returns ``run(*component_args)`` taking and returning the same
-    pytrees with every leaf an object array of components (`to_components`).
+    Traces ``fn(*example_args)`` (one run's shapes) once; ``run(*component_args)`` takes and
+    returns those pytrees with every leaf a component array (`to_components`). Raises
+    `ScalarizeError` before running (`_check`).
     """
     closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*example_args)
     _check(closed.jaxpr)
@@ -591,16 +557,10 @@ def _parts(flat, shapes) -> list:
 def flat_program(fn: Callable, example, index=None, cut_cone: int | None = None, columns=None):
     """``fn`` (one pytree in, one out) as a function of flat scalar component lists.
 
-    Returns ``(run, out_struct)``: ``run(flat)`` takes the components of a pytree
-    shaped like ``example`` (as `split` gives them) and returns the list of the
-    components of ``fn``'s output, each cast to its leaf's dtype;
-    ``out_struct`` is ``jax.eval_shape(fn, example)``. Raises `ScalarizeError`
-    when ``fn`` uses a primitive the interpreter does not handle.
-
-    With an ``index`` from `cut_index` (see `fusion_cut`), the scalar program
-    is cut wherever XLA would otherwise recompute ``cut_cone`` or more
-    operations once per consumer of a value (`fusion_cut`; what it buys:
-    ``benchmarks/ablation.py``'s ``cuts`` row).
+    Returns ``(run, out_struct)``: ``run`` maps ``example``'s components (`split` order) to
+    the output's, each cast to its leaf's dtype; ``out_struct`` is ``jax.eval_shape(fn,
+    example)``. Raises `ScalarizeError`. With an ``index`` from `cut_index`, `_eval_with_cuts`
+    cuts it (``cut_cone``: the policy's unless given) and ``run.closed_for`` gives its jaxpr.
     """
     run = scalarize(fn, example)
     leaves, tree = jax.tree.flatten(example)
@@ -639,19 +599,15 @@ def flat_program(fn: Callable, example, index=None, cut_cone: int | None = None,
 
 
 def _batched_const(x) -> bool:
-    """Whether a constant of a flat program is batched by an enclosing `vmap`
-    (`so3jax._engine._jax.batched`)."""
+    """Whether a flat program's constant is batched by an enclosing `vmap` (`_jax.batched`)."""
     return _jax.batched(x)
 
 
 def batched_components(run_flat, flat: list, batched: list, dtypes=None) -> list | None:
     """Which carry components a loop of ``run_flat`` batches, given those batched at the start.
 
-    The fixed point of "depends on a batched value" over the flat program's jaxpr
-    (``run_flat`` maps the carry's components to the next carry's, same layout).
-    ``None`` without ``run_flat.closed_for`` (a program without fusion cuts).
-    With ``dtypes``, the program is taken at scalar components of those types
-    (``flat`` may then hold arrays: columns of tangents run by a `vmap` of it).
+    ``None`` without ``run_flat.closed_for`` (no fusion cuts). With ``dtypes``, the program
+    is taken at scalars of those types (``flat`` may then hold tangent columns).
     """
     closed_for = getattr(run_flat, "closed_for", None)
     if closed_for is None:
@@ -663,8 +619,8 @@ def batched_components(run_flat, flat: list, batched: list, dtypes=None) -> list
     return carry_fixed_point(closed.jaxpr, list(batched), 0, len(batched), const_b)
 
 
-#: Primitives that call a jaxpr once with their operands, walked inside by the flag
-#: walks here and in `_engine` (loops and conditionals have rules of their own).
+#: Primitives that call a jaxpr once with their operands: the flag walks (here and in
+#: `so3jax._engine.masks`) walk inside them.
 CALL_PRIMITIVES = frozenset(
     "pjit jit closed_call core_call custom_jvp_call custom_vjp_call remat checkpoint".split()
 )
@@ -691,11 +647,8 @@ def batched_outputs(jaxpr, flags: list, const_flags=()) -> list:
 def scan_split(e) -> tuple[int, int] | None:
     """How many of scan equation ``e``'s operands are constants and how many the carry.
 
-    JAX up to 0.10 names both counts in the equation's parameters; 0.11 describes the
-    operands as three groups instead (``ft_in``: constants, carry, per-iteration
-    inputs). ``None`` where neither reading fits the body (a later JAX): callers then
-    leave the batching of that loop to JAX.
-    """
+    From ``num_consts`` / ``num_carry`` (JAX <= 0.10) or ``ft_in`` (0.11); ``None`` where
+    neither fits the body, and callers leave that loop's batching to JAX."""
     prm = e.params
     body = prm["jaxpr"].jaxpr
     if "num_consts" in prm:
@@ -760,19 +713,9 @@ def eqn_batched(e, flags: list) -> list:
 def settle_batched(run_flat, flat: list, batched: list, one, dtypes=None) -> list:
     """``flat`` with the carry components that a loop of ``run_flat`` batches batched now.
 
-    Under `vmap`, a `lax.scan` whose carry starts partly unbatched finds by
-    itself which components become batched after a step, by batching its body
-    again until nothing changes: each round re-traces the whole scalarized step
-    (about 3000 equations for the seed's RKMK4), and nested scans multiply the
-    rounds (three for the seed's forward loop). `batched_components` finds the
-    same fixed point on the flat program's jaxpr, and those components are
-    batched up front (``x + one`` with ``one`` a batched zero), so that each
-    scan batches its body once. Components that stay unbatched (a reference
-    attitude shared by the batch) stay so.
-
-    ``batched[i]`` says whether ``flat[i]`` is batched already; ``dtypes`` as in
-    `batched_components`. Without fusion cuts (no ``run_flat.closed_for``)
-    ``flat`` is returned unchanged.
+    Values unchanged (``x + one``, ``one`` a batched zero), so that each `lax.scan` batches
+    its body once (docs/engine.md, "Loops that start settled"). ``batched[i]``: whether
+    ``flat[i]`` is batched already; ``dtypes`` as in `batched_components`.
     """
     flags = batched_components(run_flat, flat, batched, dtypes)
     if flags is None:
@@ -793,11 +736,8 @@ def split(tree) -> list:
 
 
 def join(flat, struct, lead: tuple = ()):
-    """Rebuild a pytree shaped like ``struct`` from components with leading shape ``lead``.
-
-    ``flat`` lists the components in `split` order; each has shape ``lead`` (for
-    example the saved points of a scan over components).
-    """
+    """Rebuild a pytree shaped like ``struct`` from components with leading shape ``lead``
+    (e.g. a scan's saved points), listed in `split` order."""
     out, i = [], 0
     leaves, tree = jax.tree.flatten(struct)
     for s in leaves:

@@ -1,12 +1,10 @@
 """The ``"scalarize"`` pass's programs of one loop, and how a batch of them runs.
 
-`forward` and `jacobian` are `so3jax._engine.programs.Programs`' array programs
-(`Loop.fwd_array`, `Programs.jac_array`) with the step and the observations scalarized
-(`scalarize.flat_program`): every carry component a scalar, a ``(B,)`` array under
-``vmap``. `so3jax._engine.layout._dual` runs them for a batch from the policy's
-threshold on (`so3jax._engine.policy.batched_layout`), the Jacobian's tangent columns
-outside its runs (`columns_outside`). With the pass off nothing here runs. Each equals
-the array program to round-off: ``tests/passes/test_pass_scalarize.py``.
+Program in, program out: `forward` and `jacobian` are the array programs (`Loop.fwd_array`,
+`Programs.jac_array`) with step and observations scalarized (`scalarize.flat_program`), run
+by `so3jax._engine.layout._dual` for a batch from `policy.batched_layout`'s size on. Each
+equals the array program to round-off: ``tests/passes/test_pass_scalarize.py``. Speed:
+``benchmarks/ablation.py`` (``no scalarize``), ``benchmarks/layouts.py``.
 """
 
 from __future__ import annotations
@@ -29,12 +27,12 @@ from .hoist import _TRACING, _hoisted
 
 
 def forward(loop: Programs, P, c0, cut=None, batched=None, one=None):
-    """``loop.fwd_array(P, c0)`` as a program over scalar components: each carry component
-    a scalar, or a ``(B,)`` array under ``vmap`` (``batched``, ``one``: the batching rule's
-    flags and a batched zero, to settle the loop's carry, `scalarize.settle_batched`);
-    ``cut``: fusion cuts (`so3jax._engine.passes.cuts`)."""
-    # Tables in ``P`` (`sc.is_table`: a `Gust`'s path) stay whole, closed over: the
-    # scalarized step reads them by ``dynamic_slice`` instead of carrying each entry.
+    """``loop.fwd_array(P, c0)`` over scalar components (``(B,)`` arrays under ``vmap``).
+
+    ``cut``: a `cut_index`; ``batched``, ``one``: the batching rule's flags and a batched zero,
+    to settle the carry (`scalarize.settle_batched`).
+    """
+    # Tables in ``P`` (`sc.is_table`) stay whole, closed over, not carried entry by entry.
     leaves, tree = jax.tree.flatten(P)
     table = [sc.is_table(x) for x in leaves]
     small = [x for x, t in zip(leaves, table, strict=True) if not t]
@@ -59,16 +57,15 @@ def forward(loop: Programs, P, c0, cut=None, batched=None, one=None):
 def jacobian(loop: Programs, mP, mc, mo, P, c0, dP, dc0, cut=None, batched=None, one=None):
     """`Programs.jac_array` as a scalarized program: tangent components are ``(n,)`` arrays.
 
-    The carry leaves flagged `FRAME` in ``mc`` carry their tangents as `Frame`
-    ``xi`` (three numbers a rotation, `so3jax._engine.passes.frames`) inside; in and out
-    they are dense, as `Programs.jac_array`'s.
+    Carry leaves flagged `FRAME` in ``mc`` carry `Frame` tangents inside (`passes.frames`),
+    dense where a `FrameError` names them; in and out, tangents are dense.
     """
     while any(_frame_flags(mc)):
         try:
             out = _jacobian(loop, mP, mc, mo, P, c0, dP, dc0, cut, batched, one)
             _plan.note("frames", rotations=sum(_frame_flags(mc)))
             return out
-        except FrameError as e:  # those leaves' tangents come out dense: nine numbers
+        except FrameError as e:
             at = [i for i, m in enumerate(mc) if m]
             dense = {at[j] for j in e.indices}
             mc = tuple(True if i in dense else m for i, m in enumerate(mc))
@@ -85,8 +82,7 @@ def _jacobian(loop, mP, mc, mo, P, c0, dP, dc0, cut, batched, one):
     n_primal = len(sc.split((P, c0)))
     n_tangent = sum(math.prod(jnp.shape(a)) for a in jax.tree.leaves(col))
     n = jnp.shape(jax.tree.leaves((dP, dc0))[0])[0]
-    # One column here: `columns_outside` batches the tangents over the columns
-    # around this program, and its cuts count that (`sc._eval_with_cuts`).
+    # One column: `columns_outside` vmaps the columns around it; its cuts count them.
     columns = None
     if n == 1 and _TRACING.get()[0] >= current().column_cuts_from:
         columns = [False] * n_primal + [True] * n_tangent
@@ -143,16 +139,10 @@ def columns_outside(runs: Callable, args, in_batched, in_cols: list, out_cols: l
     """``runs(*args)`` (a batch of scalarized Jacobian programs, or their ``jvp``) with
     the column axis of the Jacobian's tangents outside the runs' axis.
 
-    ``in_cols`` gives, per leaf of ``args``, the axis of the columns in one run's
-    leaf (``None``: the leaf has none); ``out_cols`` the same per leaf of the output.
-
-    Under ``runs`` alone the Jacobian program's columns are a ``vmap`` inside the
-    runs' ``vmap``, so every tangent component is a ``(B, n)`` array whose columns
-    are its minor axis: each operation between a primal ``(B,)`` and a tangent
-    broadcasts the primal across that axis of 2 (two gains), an inner loop XLA's CPU
-    code does not vectorise well. Here one column at a time runs under ``runs``, and
-    the columns are a ``vmap`` around it: tangent components are ``(n, B)``, the
-    primal stays ``(B,)`` and is computed once (it does not depend on the tangents).
+    One column runs under ``runs`` and the columns are a ``vmap`` around it: tangents are
+    ``(n, B)``, the primal ``(B,)``, computed once (docs/engine.md, "The one-pass
+    Jacobian"). ``in_cols`` / ``out_cols``: per leaf of ``args`` / of the output, the axis
+    of the columns in one run's leaf (``None``: none).
     """
     leaves, treedef = jax.tree.flatten(args)
     flags = jax.tree.leaves(in_batched)
@@ -185,9 +175,8 @@ def column_count(args, in_batched, out_tree) -> int:
 
 
 def jacobian_columns(args, out_tree) -> tuple[list, list]:
-    """`columns_outside`'s ``in_cols`` and ``out_cols`` for the Jacobian program:
-    ``(P, c0, dP, dc) -> (ys, cN, dys, dcN)``, one run's columns on axis 0 of ``dP`` and
-    ``dc``, axis 1 of ``dys`` (after the saved points) and axis 0 of ``dcN``."""
+    """`columns_outside`'s ``in_cols`` and ``out_cols`` for ``(P, c0, dP, dc) -> (ys, cN, dys,
+    dcN)``: columns on axis 0 of ``dP``, ``dc`` and ``dcN``, axis 1 of ``dys``."""
     n_in = [len(jax.tree.leaves(a)) for a in args]
     n_out = [t.num_leaves for t in out_tree.children()]
     in_cols = [None] * (n_in[0] + n_in[1]) + [0] * (n_in[2] + n_in[3])

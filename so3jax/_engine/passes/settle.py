@@ -1,25 +1,11 @@
 """The ``"settle"`` pass: each loop starts where JAX's fixed point over its carry ends.
 
-Under ``vmap`` JAX finds which components of a ``scan``'s carry become batched, and under
-``jvp`` which carry tangents become nonzero (under ``grad`` its partial evaluator finds
-the unknown ones the same way), by transforming the loop's body again until nothing
-changes: two passes over a body whose carry starts partly unbatched or with symbolic
-zero tangents, and every loop nested in that body once more per pass. This pass takes
-the same fixed point on flags first and starts the loop there, so that JAX transforms
-each body once:
-
-- `batched_carries`: the array program under ``vmap`` (`so3jax._engine.layout._Traced`)
-  batches, before each loop, the carry components its body would batch (what stays
-  unbatched, such as the reference attitude a batch shares, stays so);
-- `carry_tangents`: JAX's ``jvp`` of the checkpointed program (the ``"checkpointed
-  jvp"`` strategies of `so3jax._engine.derivatives`) starts each initial carry leaf that
-  a step gives a nonzero tangent with a zero tangent instead of a symbolic one;
-- `jacobian_tangents`: the same for the Jacobian program's second derivatives.
-
-The program and its values are unchanged; tracing and lowering are shorter
-(``benchmarks/ablation.py``'s tracing times). With the pass off each function returns
-its inputs. Each records a ``"settle"`` entry in the plan (`so3jax.explain`) where it
-starts a loop elsewhere than JAX would.
+Program in, program out: each function takes the fixed point JAX would iterate a ``scan``
+body to (its carry's batched or nonzero-tangent flags; docs/engine.md, "Loops that start
+settled") on flags first and starts the loop there, so JAX transforms each body once. With
+the pass off each returns its inputs; each notes ``"settle"`` in the plan where it acts.
+Values unchanged: ``tests/passes/test_pass_settle.py``; tracing shorter:
+``benchmarks/ablation.py``'s tracing times.
 """
 
 from __future__ import annotations
@@ -38,9 +24,10 @@ from . import scalarize as sc
 
 
 def batched_carries(body, split: tuple, ins: list, bs: list, batch: Callable):
-    """``(ins, bs)`` of a ``scan`` equation with its carry batched as its body's fixed
-    point leaves it. ``body``: the loop's body jaxpr; ``split``: its ``(num_consts,
-    num_carry)``; ``bs``: which operands are batched; ``batch(x)``: ``x`` batched."""
+    """``(ins, bs)`` of a ``scan`` equation (the array program under ``vmap``,
+    `so3jax._engine.layout._Traced`) with its carry batched as its body's fixed point leaves
+    it. ``split``: ``(num_consts, num_carry)``; ``bs``: which operands are batched;
+    ``batch(x)``: ``x`` batched."""
     if not current().on("settle"):
         return ins, bs
     nc, ncar = split
@@ -57,13 +44,13 @@ def batched_carries(body, split: tuple, ins: list, bs: list, batch: Callable):
 
 
 def carry_tangents(step, primals, p_leaves, t_leaves, nz, cache=None) -> tuple[list, list]:
-    """``(t_leaves, nz)`` with a zero tangent, not a symbolic one, for each initial carry
-    leaf that a step gives a nonzero tangent (`_tangent_masks`), flagged nonzero.
+    """``(t_leaves, nz)`` for JAX's ``jvp`` of the checkpointed program
+    (`so3jax._engine.derivatives`), with a zero tangent, flagged nonzero, for each initial
+    carry leaf a step gives a nonzero tangent (`_tangent_masks`, with its ``cache``).
 
-    ``primals`` is ``(P, c0)``, ``p_leaves`` its leaves, ``t_leaves`` their tangents and
-    ``nz`` whether each is nonzero. The zero is computed from an input tangent
-    (`_zero_like_tangent`), so that ``grad``'s partial evaluator sees it as unknown too.
-    ``cache``: `_tangent_masks`'.
+    ``primals``: ``(P, c0)``, with leaves ``p_leaves``, tangents ``t_leaves``, nonzero flags
+    ``nz``. The zero is made from an input tangent (`_zero_like_tangent`): unknown to ``grad``
+    too.
     """
     if not current().on("settle"):
         return t_leaves, nz
@@ -89,8 +76,8 @@ def carry_tangents(step, primals, p_leaves, t_leaves, nz, cache=None) -> tuple[l
 
 def jacobian_tangents(loop, mP, mc, primals, p_leaves, t_leaves, nz):
     """`carry_tangents` for the Jacobian program (`Programs.jac_array`), whose arguments
-    ``(P, c0, dP, dc0)`` are a loop's parameters ``(P, dP)`` and its carry ``(c0, dc0)``:
-    the carry tangents of second derivatives (`so3jax._engine.layout._dual_jvp`)."""
+    ``(P, c0, dP, dc0)`` are parameters ``(P, dP)`` and carry ``(c0, dc0)``: for second
+    derivatives (`so3jax._engine.layout._dual_jvp`)."""
     if not current().on("settle"):
         return t_leaves, nz
     sizes = [len(jax.tree.leaves(x)) for x in primals]

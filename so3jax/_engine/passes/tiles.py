@@ -1,11 +1,10 @@
 """The ``"tiles"`` pass: a large batch of Jacobian programs run tile after tile on a CPU.
 
-Program in, program out: `_in_tiles` takes a ``custom_vmap`` rule and a batch and runs
-the rule on ``n`` tiles of ``size`` runs under ``lax.map`` (`batch_tiles` sizes them).
-A tangent column reads many materialized values per operation, and a tile's values stay
-in the core's cache where a whole batch's do not. Each run's results are those of the
-untiled batch: ``tests/passes/test_tiles.py``. Speed: ``benchmarks/layouts.py``,
-``benchmarks/ablation.py``.
+Program in, program out: `_in_tiles` runs a ``custom_vmap`` rule on ``n`` tiles of
+``size`` runs under ``lax.map`` (sized by `batch_tiles`), so that a tile's values stay in
+cache (docs/engine.md, "Tiles"). Each run's results are the untiled batch's:
+``tests/passes/test_pass_tiles.py``. Speed: ``benchmarks/ablation.py`` (``large grad``),
+``benchmarks/layouts.py``.
 """
 
 from __future__ import annotations
@@ -20,9 +19,8 @@ from ..policy import batched_layout, current, one_cpu_device
 
 
 def batch_tiles(what: str, runs: int, columns: int = 0, observed: int = 1) -> tuple[int, int]:
-    """``(n, size)``: a batch of ``runs`` runs of program ``what`` with ``columns``
-    tangent columns, observing ``observed`` scalars per saved point, runs as ``n`` tiles
-    of ``size`` runs (the policy's ``tile_values``); ``(1, runs)`` untiled."""
+    """``(n, size)``: ``runs`` runs of program ``what`` (``columns`` tangent columns,
+    ``observed`` scalars per saved point) as ``n`` tiles of ``size``; ``(1, runs)``: untiled."""
     policy = current()
     values = policy.tile_values if what == "jacobian" else None
     if values is None or not policy.on("tiles") or not one_cpu_device():
@@ -42,12 +40,8 @@ def batch_tiles(what: str, runs: int, columns: int = 0, observed: int = 1) -> tu
 
 
 def _in_tiles(rule: Callable, axis_size: int, n: int, size: int, in_batched, args):
-    """``rule(axis_size, in_batched, *args)`` (a `custom_vmap` rule) run as ``n``
-    tiles of ``size`` runs under `lax.map`, one after the other (`batch_tiles`).
-
-    The batch is padded to ``n * size`` runs with copies of its last run, whose
-    results are dropped.
-    """
+    """``rule(axis_size, in_batched, *args)`` (a `custom_vmap` rule) as ``n`` tiles of
+    ``size`` runs under `lax.map`; the padding runs (copies of the last) are dropped."""
     pad = n * size - axis_size
     leaves, treedef = jax.tree.flatten(args)
     flags = [bool(b) for b in jax.tree.leaves(in_batched)]

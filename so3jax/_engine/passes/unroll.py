@@ -1,11 +1,10 @@
 """The ``"unroll"`` pass: small reductions written out term by term.
 
-Program in, program out: `_unrolled` takes a ``ClosedJaxpr`` and returns one that
-computes the same values with every reduction over at most the policy's
-``unroll_max_terms`` terms (nested jaxprs' too) written as a chain of binary
-operations. A hoisted loop (`so3jax._engine.passes.hoist`) may then hold no reduction,
-whatever batch a later ``vmap`` gives it. Sums are taken in row-major order, so results
-agree with XLA's reductions to round-off: ``tests/passes/test_unroll.py``.
+Program in, program out: `_unrolled` returns a ``ClosedJaxpr`` with every reduction over at
+most ``unroll_max_terms`` terms written as a chain of binary operations in row-major order, so
+that a hoisted loop (`hoist`) holds none whatever a later ``vmap`` gives it (docs/engine.md,
+"Reductions written out"). Values equal to round-off: ``tests/passes/test_pass_unroll.py``.
+Speed: ``benchmarks/ablation.py`` (``run grad``).
 """
 
 from __future__ import annotations
@@ -20,8 +19,7 @@ from jax.extend import core as jex_core
 from ..policy import current
 from . import scalarize as sc
 
-#: The reductions a hoisted loop may hold (all of `_HOISTABLE`'s), with the operation of
-#: each step when `_unrolled` writes them out term by term.
+#: The reductions of `_HOISTABLE`, with the binary operation `_unrolled` chains them by.
 _UNROLLED = {
     "reduce_sum": jax.lax.add,
     "reduce_prod": jax.lax.mul,
@@ -42,9 +40,7 @@ def _small_reduction(e) -> bool:
     )
 
 
-#: What `_has_small_reduction` and `_unrolled` found for a jaxpr (by identity, while it
-#: lives): a step's jitted parts appear in a loop once per stage, and each level of
-#: nesting asks again about the jaxprs below it.
+#: What `_has_small_reduction` and `_unrolled` found for a jaxpr (by identity, while it lives).
 _SMALL_MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
@@ -63,16 +59,8 @@ def _has_small_reduction(jaxpr) -> bool:
 
 def _unrolled(closed):
     """``closed`` (a `ClosedJaxpr`) with its reductions over at most ``unroll_max_terms``
-    terms, nested jaxprs' too, written out term by term (`_eval_unrolled`).
-
-    A batched loop's reductions grow with its batch, and XLA fuses a reduction over
-    more than ``hoist_max_reduced`` elements into a kernel its older emitter does not
-    implement. Written out, the loop holds none, whatever batch a later ``vmap``
-    gives it: so the derivative programs of the array layout can be hoisted, which
-    makes them several times faster. A forward program keeps its reductions while
-    they fit ``hoist_max_reduced`` (written out, they are slower there); past it they are
-    written out too, which is still faster than not hoisting.
-    """
+    terms, nested jaxprs' too, written out term by term (`_eval_unrolled`); ``closed``
+    itself with the pass off or nothing to write out."""
     if not current().on("unroll") or not _has_small_reduction(closed.jaxpr):
         return closed
     out = _UNROLLED_MEMO.get(closed)
@@ -101,8 +89,8 @@ def _unrolled_param(v):
     return v
 
 
-#: Elementwise primitives through which `_eval_unrolled` takes a term of a reduction
-#: back to their operands (an operand of size 1 on the term's axis is broadcast).
+#: Elementwise primitives through which `_eval_unrolled` takes a reduction's term back to
+#: their operands.
 _TERMWISE = frozenset(
     """abs add add_any atan2 convert_element_type cos cosh div exp expm1 integer_pow
     log log1p max min mul neg rsqrt select_n sign sin sinh sqrt square sub tan tanh""".split()
@@ -110,15 +98,11 @@ _TERMWISE = frozenset(
 
 
 def _eval_unrolled(jaxpr, consts, args) -> list:
-    """Evaluate ``jaxpr`` with its reductions over at most ``unroll_max_terms`` terms
-    written out, term by term in row-major order.
+    """Evaluate ``jaxpr`` with its small reductions written out term by term.
 
-    A term (``x`` at one index of the reduced axes) is computed from ``x``'s producer
-    where only the reduction reads ``x`` and the producer is elementwise
-    (`_TERMWISE`) or a broadcast, else sliced from ``x``: ``sum(A[:, :, None] *
-    B[None], 1)`` becomes ``A[:, 0, None] * B[None, 0] + A[:, 1, None] * B[None, 1] +
-    ...``. Sliced after the product instead, XLA computes the product once in full,
-    which is slower.
+    A term is taken back through its producer where only the reduction reads it and the
+    producer is elementwise (`_TERMWISE`) or a broadcast, else sliced:
+    ``sum(A[:, :, None] * B[None], 1)`` becomes ``A[:, 0, None] * B[None, 0] + ...``.
     """
     env = dict(zip(jaxpr.constvars, consts, strict=True))
     env.update(zip(jaxpr.invars, args, strict=True))
