@@ -5,8 +5,9 @@
 - ``BatchTracer``: whether a value closed over is batched by an enclosing ``vmap`` (`batched`);
 - the rule tables of so3jax's own primitive (`so3jax._engine.linear_call`).
 
-On a JAX release outside `TESTED` (`supported` is False) the engine runs its reference
-programs and warns once (`warn_reference_path`). Nothing here changes JAX's state.
+On a JAX release outside `TESTED`, or without those tables (`supported` is False), the
+engine runs its reference programs and warns once (`warn_reference_path`). Nothing here
+changes JAX's state.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import functools
 import warnings
 
 import jax
+
+from .linear_call import AVAILABLE as _HAVE_LINEAR_CALL
 
 #: The JAX releases (major, minor) the suite passes on with the engine's fast paths.
 TESTED = frozenset({(0, 10), (0, 11), (0, 12)})
@@ -41,8 +44,9 @@ def release() -> tuple[int, int]:
 
 
 def supported() -> bool:
-    """Whether the installed JAX is one of `TESTED` (the engine's fast paths are on)."""
-    return release() in TESTED
+    """Whether the installed JAX is one of `TESTED`, with the rule tables so3jax's own
+    ``linear_call`` needs (the engine's fast paths are on)."""
+    return release() in TESTED and _HAVE_LINEAR_CALL
 
 
 @functools.cache

@@ -37,7 +37,6 @@ from .passes.frames import OBS_DENSE, OBS_LEFT, OBS_NAMES, OBS_ZERO, _frame_dens
 from .policy import current
 from .programs import Programs
 from .tangents import (
-    _HAVE_LINEAR_CALL_BATCHING,
     _float_tangent,
     _jvp_through,
     _linear_tangent,
@@ -85,6 +84,19 @@ class Strategy:
     def jvp(self, loop: Programs, fwd: Callable, primals, tangents):
         raise NotImplementedError
 
+    def _settled(self, loop: Programs, primals, tangents):
+        """``(leaves, treedef, t_leaves, nz, real)`` of the rule's inputs, noted in the plan:
+        ``real`` flags the nonzero tangents, ``nz`` those and the carry tangents the
+        ``"settle"`` pass starts with zeros (`settle.carry_tangents`)."""
+        p_leaves, treedef = jax.tree.flatten(primals)
+        t_leaves, real = _tangent_leaves(tangents)
+        n = sum(math.prod(jnp.shape(t)) for t, z in zip(t_leaves, real, strict=True) if z)
+        _plan.note("derivative", strategy=self.name, scalars=n, why=self.why)
+        t_leaves, nz = settle.carry_tangents(
+            loop.step, primals, p_leaves, t_leaves, real, loop.jaxprs
+        )
+        return p_leaves, treedef, t_leaves, nz, real
+
 
 @dataclasses.dataclass(frozen=True)
 class Autodiff(Strategy):
@@ -95,13 +107,7 @@ class Autodiff(Strategy):
     name = "checkpointed jvp"
 
     def jvp(self, loop, fwd, primals, tangents):
-        p_leaves, treedef = jax.tree.flatten(primals)
-        t_leaves, nz = _tangent_leaves(tangents)
-        n = sum(math.prod(jnp.shape(t)) for t, z in zip(t_leaves, nz, strict=True) if z)
-        _plan.note("derivative", strategy=self.name, scalars=n, why=self.why)
-        t_leaves, nz = settle.carry_tangents(
-            loop.step, primals, p_leaves, t_leaves, nz, loop.jaxprs
-        )
+        p_leaves, treedef, t_leaves, nz, _ = self._settled(loop, primals, tangents)
         out, tan = _jvp_through(loop.fwd_checkpointed, treedef, p_leaves, t_leaves, nz)
         return _batched_with(out, primals), tan  # batched as the run's forward programs are
 
@@ -144,14 +150,7 @@ class CheckpointedAdjoint(Strategy):
     name = "checkpointed jvp, discrete adjoint"
 
     def jvp(self, loop, fwd, primals, tangents):
-        p_leaves, treedef = jax.tree.flatten(primals)
-        t_leaves, nz = _tangent_leaves(tangents)
-        n = sum(math.prod(jnp.shape(t)) for t, z in zip(t_leaves, nz, strict=True) if z)
-        _plan.note("derivative", strategy=self.name, scalars=n, why=self.why)
-        real = list(nz)
-        t_leaves, nz = settle.carry_tangents(
-            loop.step, primals, p_leaves, t_leaves, nz, loop.jaxprs
-        )
+        p_leaves, treedef, t_leaves, nz, real = self._settled(loop, primals, tangents)
         P, c0 = primals
         floats = [_is_float(x) for x in p_leaves]
         nz = [z and f for z, f in zip(nz, floats, strict=True)]
@@ -249,10 +248,11 @@ def choose(program: str, n_scalars: int) -> Strategy:
     """The strategy for a run of ``program`` differentiated through ``n_scalars`` scalars.
 
     ``"auto"``: `OnePassJacobian` through at most ``forward_jacobian_max`` scalars, else
-    `CheckpointedAdjoint`; ``"adjoint"``: `CheckpointedAdjoint`; any other program, or a
-    JAX release without so3jax's ``linear_call``: `Autodiff`.
+    `CheckpointedAdjoint`; ``"adjoint"``: `CheckpointedAdjoint`; any other program:
+    `Autodiff` (`so3jax._engine.run` takes every program there on a JAX release outside
+    `so3jax._engine._jax.supported`).
     """
-    if program not in ("auto", "adjoint") or not _HAVE_LINEAR_CALL_BATCHING:
+    if program not in ("auto", "adjoint"):
         return Autodiff(why="a program that asks for JAX's derivative")
     if program == "adjoint":
         return CheckpointedAdjoint(why='program="adjoint"')
@@ -272,7 +272,7 @@ def differentiated(loop: Programs, fwd: Callable, program: str) -> Callable:
 
     def f_jvp(primals, tangents):
         nz, lin = _nonzero(primals, tangents)
-        if not lin and program in ("auto", "adjoint") and _HAVE_LINEAR_CALL_BATCHING:
+        if not lin and program in ("auto", "adjoint"):
             out = fwd(*primals)
             dys = jax.tree.map(jnp.zeros_like, out[0])
             return out, (dys, _tangent_tree(out[1], [jnp.zeros_like(x) for x in _floats(out[1])]))

@@ -26,7 +26,6 @@ from .passes.hoist import _hoisted, _tracing
 from .passes.tiles import _in_tiles, batch_tiles
 from .policy import batched_layout
 from .tangents import (
-    _HAVE_LINEAR_CALL_BATCHING,
     _array_jvp,
     _float_tangent,
     _linear_tangent,
@@ -95,7 +94,7 @@ def _dual_jvp(array_fn: Callable, scalar_fn: Callable, what: str, settle, primal
     ``"settle"`` pass's `jacobian_tangents`), so JAX differentiates each loop body once.
     """
     _plan.note("derivative", strategy="second derivative", program=what)
-    if what not in ("run", "jacobian") or not _HAVE_LINEAR_CALL_BATCHING:
+    if what not in ("run", "jacobian"):
         return _array_jvp(array_fn, primals, tangents)
     leaves, treedef = jax.tree.flatten(primals)
     t_leaves, real = _tangent_leaves(tangents)
@@ -203,17 +202,14 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
             return _batched_rule(axis_size, in_batched, *args)
 
     def _batched_rule(axis_size, in_batched, *args):
+        def array(why):
+            _plan.note("layout", program=what, runs=axis_size, layout="array", why=why)
+            return array_fn.vmap(axis_size, in_batched, args)
+
         axes = tuple(jax.tree.map(lambda b: 0 if b else None, ib) for ib in in_batched)
         scalar_from, cut_from = batched_layout(what)
         if scalar_from is None or axis_size < scalar_from:
-            _plan.note(
-                "layout",
-                program=what,
-                runs=axis_size,
-                layout="array",
-                why=f"fewer runs than the scalarized layout's threshold {scalar_from}",
-            )
-            out = array_fn.vmap(axis_size, in_batched, args)
+            out = array(f"fewer runs than the scalarized layout's threshold {scalar_from}")
             return out, jax.tree.map(lambda _: True, out)
         try:
             cuts = cut_from is not None and axis_size >= cut_from
@@ -238,14 +234,7 @@ def _dual_of(array_fn: "_Traced", scalar_fn: Callable, what: str, columns=None) 
                 out = runs(*args)
             _plan.note("layout", program=what, runs=axis_size, layout="scalarized", cuts=cuts)
         except sc.ScalarizeError as e:
-            _plan.note(
-                "layout",
-                program=what,
-                runs=axis_size,
-                layout="array",
-                why=f"the step cannot be scalarized: {e}",
-            )
-            out = array_fn.vmap(axis_size, in_batched, args)
+            out = array(f"the step cannot be scalarized: {e}")
         return out, jax.tree.map(lambda _: True, out)
 
     return fn

@@ -33,28 +33,8 @@ def _jaxpr_depends(jaxpr, args: list, dep: list) -> list:
     return [bool(m.any()) for m in _mask_eval(jaxpr, ins)]
 
 
-_SHAPE_OPS = {
-    "reshape": lambda x, p: np.reshape(x, p["new_sizes"]),
-    "squeeze": lambda x, p: np.squeeze(x, axis=tuple(p["dimensions"])),
-    "expand_dims": lambda x, p: np.expand_dims(x, tuple(p["dimensions"])),
-    "transpose": lambda x, p: np.transpose(x, p["permutation"]),
-    "rev": lambda x, p: np.flip(x, tuple(p["dimensions"])),
-    "slice": lambda x, p: x[
-        tuple(
-            slice(a, b, None if p["strides"] is None else p["strides"][i])
-            for i, (a, b) in enumerate(zip(p["start_indices"], p["limit_indices"], strict=True))
-        )
-    ],
-    "broadcast_in_dim": lambda x, p: np.broadcast_to(
-        np.expand_dims(
-            x, tuple(i for i in range(len(p["shape"])) if i not in p["broadcast_dimensions"])
-        ),
-        p["shape"],
-    ),
-    "reduce_sum": lambda x, p: np.any(x, axis=tuple(p["axes"])),
-    "reduce_max": lambda x, p: np.any(x, axis=tuple(p["axes"])),
-    "reduce_min": lambda x, p: np.any(x, axis=tuple(p["axes"])),
-}
+#: Reductions: an entry of the result depends on what it reduces.
+_REDUCTIONS = frozenset({"reduce_sum", "reduce_max", "reduce_min"})
 
 
 def _dot_mask(lhs, rhs, dimension_numbers) -> np.ndarray:
@@ -95,15 +75,10 @@ def _mask_eval(jaxpr, ins: list) -> list:
         inner = getattr(inner, "jaxpr", inner)
         shapes = [tuple(v.aval.shape) for v in e.outvars]
         try:
-            if name in _SHAPE_OPS:
-                outs = [np.asarray(_SHAPE_OPS[name](xs[0], prm), bool)]
-            elif name == "concatenate":
-                outs = [np.concatenate(xs, axis=prm["dimension"])]
-            elif name == "stack":
-                outs = [np.stack(xs, axis=prm["axis"])]
-            elif name == "split":
-                cuts = np.cumsum(prm["sizes"])[:-1]
-                outs = np.split(xs[0], cuts, axis=prm["axis"])
+            if name in sc.SHAPE_OPS:
+                outs = sc.SHAPE_OPS[name](xs, prm)
+            elif name in _REDUCTIONS:
+                outs = [np.any(xs[0], axis=tuple(prm["axes"]))]
             elif name == "dot_general":
                 outs = [_dot_mask(*xs, prm["dimension_numbers"])]
             elif name in sc._ELEMENTWISE:

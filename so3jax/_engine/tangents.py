@@ -7,14 +7,13 @@ from __future__ import annotations
 
 import functools
 import math
-import warnings
 from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import linear_call as _linear_call, plan as _plan
+from . import plan as _plan
 from .linear_call import linear_call
 from .policy import current, using
 from .trees import (
@@ -193,23 +192,6 @@ def _jvp_through(fn: Callable, treedef, leaves: list, t_leaves: list, nz: list):
         return fn(*jax.tree.unflatten(treedef, _fill(nz, xs, leaves)))
 
     return jax.jvp(g, tuple(_pick(nz, leaves)), tuple(_pick(nz, t_leaves)))
-
-
-def _linear_call_batches() -> bool:
-    """Whether so3jax's ``linear_call`` primitive is available; if not, the engine runs its
-    reference programs and warns once."""
-    if not _linear_call.AVAILABLE:  # pragma: no cover - a JAX release that moved the tables
-        warnings.warn(
-            "so3jax: this JAX release lacks the rule tables so3jax's linear_call primitive "
-            "needs (jax.interpreters.ad / batching / mlir); derivatives run as JAX's "
-            "autodiff of the array program (slower: the one-pass Jacobian and the discrete "
-            "adjoint are off)",
-            stacklevel=2,
-        )
-    return _linear_call.AVAILABLE
-
-
-_HAVE_LINEAR_CALL_BATCHING = _linear_call_batches()
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))

@@ -23,6 +23,7 @@ from jax.extend import core as jex_core
 
 from .. import _jax
 from ..policy import current
+from ..trees import _batch_by
 from .cuts import _eval_with_cuts, _is_cut, _is_probe
 
 __all__ = [
@@ -397,47 +398,50 @@ _REDUCTIONS = {
 }
 
 
+def _broadcast_in_dim(x, p):
+    expanded = [1] * len(p["shape"])
+    for src, dst in enumerate(p["broadcast_dimensions"]):
+        expanded[dst] = x.shape[src]
+    return np.broadcast_to(x.reshape(expanded), p["shape"])
+
+
+def _slice(x, p):
+    strides = p["strides"] or (1,) * x.ndim
+    starts, limits = p["start_indices"], p["limit_indices"]
+    return x[tuple(slice(*b) for b in zip(starts, limits, strides, strict=True))]
+
+
+#: Shape operations on NumPy arrays of any dtype (components here, element masks in
+#: `so3jax._engine.masks`): ``(operands, params) -> [outputs]``. They move entries only.
+SHAPE_OPS = {
+    "broadcast_in_dim": lambda xs, p: [_broadcast_in_dim(xs[0], p)],
+    "reshape": lambda xs, p: [xs[0].reshape(p["new_sizes"])],
+    "squeeze": lambda xs, p: [np.squeeze(xs[0], axis=tuple(p["dimensions"]))],
+    "expand_dims": lambda xs, p: [np.expand_dims(xs[0], p["dimensions"])],
+    "transpose": lambda xs, p: [xs[0].transpose(p["permutation"])],
+    "rev": lambda xs, p: [np.flip(xs[0], p["dimensions"])],
+    "slice": lambda xs, p: [_slice(xs[0], p)],
+    "concatenate": lambda xs, p: [np.concatenate(xs, axis=p["dimension"])],
+    "stack": lambda xs, p: [np.stack(xs, axis=p["axis"])],
+    "unstack": lambda xs, p: [
+        np.take(xs[0], i, axis=p["axis"]) for i in range(xs[0].shape[p["axis"]])
+    ],
+    "split": lambda xs, p: np.split(xs[0], np.cumsum(p["sizes"])[:-1], axis=p["axis"]),
+}
+
+
 def _apply(eqn, ins):
     name = eqn.primitive.name
     p = eqn.params
     if name in _ELEMENTWISE:
         return _elementwise(eqn.primitive, p, ins)
+    if name in SHAPE_OPS:
+        outs = SHAPE_OPS[name](ins, p)
+        return outs if eqn.primitive.multiple_results else outs[0]
     x = ins[0] if ins else None
-    if name == "broadcast_in_dim":
-        shape, dims = p["shape"], p["broadcast_dimensions"]
-        expanded = [1] * len(shape)
-        for src, dst in enumerate(dims):
-            expanded[dst] = x.shape[src]
-        return np.broadcast_to(x.reshape(expanded), shape)
-    if name == "reshape":
-        return x.reshape(p["new_sizes"])
     if name in ("reshard", "sharding_constraint"):
         # A layout annotation (e.g. `zeros_like` of a sharded array): components carry none.
         return x
-    if name == "squeeze":
-        return x.reshape(tuple(n for d, n in enumerate(x.shape) if d not in p["dimensions"]))
-    if name == "expand_dims":
-        return np.expand_dims(x, p["dimensions"])
-    if name == "transpose":
-        return x.transpose(p["permutation"])
-    if name == "rev":
-        return np.flip(x, p["dimensions"])
-    if name == "slice":
-        strides = p["strides"] or (1,) * x.ndim
-        idx = tuple(
-            slice(s, e, st)
-            for s, e, st in zip(p["start_indices"], p["limit_indices"], strides, strict=True)
-        )
-        return x[idx]
-    if name == "concatenate":
-        return np.concatenate(ins, axis=p["dimension"])
-    if name == "stack":
-        return np.stack(ins, axis=p["axis"])
-    if name == "unstack":
-        return [np.take(x, i, axis=p["axis"]) for i in range(x.shape[p["axis"]])]
-    if name == "split":
-        cuts = np.cumsum(p["sizes"])[:-1]
-        return list(np.split(x, cuts, axis=p["axis"]))
     if name == "pad":
         return _pad(x, ins[1], p["padding_config"])
     if name == "dynamic_slice":
@@ -720,14 +724,10 @@ def settle_batched(run_flat, flat: list, batched: list, one, dtypes=None) -> lis
     flags = batched_components(run_flat, flat, batched, dtypes)
     if flags is None:
         return flat
-
-    def batch(x):
-        x = jnp.asarray(x)
-        if x.dtype == jnp.bool_:
-            return jnp.logical_or(x, one != 0)
-        return x + one.astype(x.dtype)
-
-    return [batch(x) if f and not f0 else x for x, f, f0 in zip(flat, flags, batched, strict=True)]
+    return [
+        _batch_by(x, one) if f and not f0 else x
+        for x, f, f0 in zip(flat, flags, batched, strict=True)
+    ]
 
 
 def split(tree) -> list:
