@@ -18,6 +18,8 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
+from .trees import _spec
+
 try:  # the public rule tables for a primitive of one's own
     from jax.extend.core import ClosedJaxpr, Primitive, jaxpr_as_fun
     from jax.interpreters import ad, batching, mlir
@@ -114,13 +116,9 @@ def linear_call(
         return jax.tree.unflatten(out_tree[0], out)
     shapes, tree = jax.tree.flatten(out_shapes)
     out_tree.append(tree)
-    callee = _Callee(None, flat_fun, [_aval(x) for x in (*res, *lin)], [_aval(x) for x in shapes])
+    callee = _Callee(None, flat_fun, [_spec(x) for x in (*res, *lin)], [_spec(x) for x in shapes])
     out = _bind_callee(callee, [], res, lin, flat_transpose, flat_diff)
     return jax.tree.unflatten(tree, out)
-
-
-def _aval(x):
-    return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
 
 
 class _Callee:
@@ -290,7 +288,7 @@ def _batch(args, dims, *, jaxpr, n_consts, n_res, transpose, diff):
         b_diff = _dropping_consts(b_diff, n_consts)
     if jaxpr.lazy:  # still traced at its first use, batched
         outs = [jax.ShapeDtypeStruct((size, *a.shape), a.dtype) for a in jaxpr.out_avals]
-        callee = _Callee(None, batched, [_aval(x) for x in (*pre, *lin)], outs)
+        callee = _Callee(None, batched, [_spec(x) for x in (*pre, *lin)], outs)
         return _bind_callee(callee, [], pre, lin, batched_transpose, b_diff), [0] * n_out
     out = _bind(batched, pre, lin, batched_transpose, b_diff)
     return out, [0] * n_out

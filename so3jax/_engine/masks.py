@@ -12,7 +12,7 @@ import numpy as np
 from jax.extend import core as jex_core
 
 from .passes import scalarize as sc
-from .trees import _is_float
+from .trees import _is_float, _spec
 
 
 def _depends(fn, args: list, dep: list) -> list:
@@ -23,8 +23,7 @@ def _depends(fn, args: list, dep: list) -> list:
 
 def _abstract_jaxpr(fn, args: list):
     """``fn``'s jaxpr at the shapes and dtypes of ``args`` (traced once, nothing runs)."""
-    spec = [jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)) for a in args]
-    return jax.make_jaxpr(fn)(*spec).jaxpr
+    return jax.make_jaxpr(fn)(*[_spec(a) for a in args]).jaxpr
 
 
 def _jaxpr_depends(jaxpr, args: list, dep: list) -> list:

@@ -205,13 +205,13 @@ class Programs(Loop):
 
         return jax.lax.scan(block, carry, (res, cs, list(ct_obs)), reverse=True)[0]
 
-    def _gradients(self, mP, mc, P, c0, ct_cN, backward):
+    def _gradients(self, mP, mc, P, ct_cN, backward):
         """``(gP, gc0)`` from ``backward((lam, acc)) -> (lam, acc)`` started at the final
-        carry's cotangents ``ct_cN`` (one per float leaf of the carry ``c0``)."""
-        pf, cf = _floats(P), _floats(c0)
+        carry's cotangents ``ct_cN`` (one per float leaf of the carry)."""
+        pf = _floats(P)
         lam, acc = backward((_pick(mc, ct_cN), [jnp.zeros_like(p) for p in _pick(mP, pf)]))
         gP = _fill(mP, acc, [jnp.zeros_like(p) for p in pf])
-        return gP, _fill(mc, lam, [jnp.zeros_like(c) for c in cf])
+        return gP, _fill(mc, lam, [jnp.zeros_like(c) for c in ct_cN])
 
     def fwd_residuals(self, mP, mc, layout: list, P, c0):
         """``((ys, cN), (res, cs))``: `fwd_array`'s run with every step's residuals and the
@@ -225,9 +225,8 @@ class Programs(Loop):
         leaves of ``P``, ``c0``, given ``ct_obs`` (per saved point, for the observations flagged
         in ``keep``) and ``ct_cN`` (per float leaf of the final carry). Nothing replayed."""
         res, cs = saved
-        c0 = jax.tree.map(lambda a: a[0], cs)  # (its shapes only)
         back = functools.partial(self._backward, mP, mc, keep, layout, P, res, cs, ct_obs)
-        return self._gradients(mP, mc, P, c0, ct_cN, back)
+        return self._gradients(mP, mc, P, ct_cN, back)
 
     def fwd_segments(self, P, c0):
         """``((ys, cN), ck)``: `fwd_array`'s run and the carries at the starts of its
@@ -258,7 +257,7 @@ class Programs(Loop):
                 return segment(carry, (0, c0, [a[0] for a in cts]))[0]
             return jax.lax.scan(segment, carry, (jnp.arange(S), ck, cts), reverse=True)[0]
 
-        return self._gradients(mP, mc, P, c0, ct_cN, backward)
+        return self._gradients(mP, mc, P, ct_cN, backward)
 
 
 def _packed_vjp(layout: list, g, *primals):

@@ -22,6 +22,7 @@ from .trees import (
     _front,
     _is_float,
     _pick,
+    _spec,
     _tangent_leaves,
     _unit_columns,
 )
@@ -81,7 +82,7 @@ def _linear_tangent(
     traced (under the policy active here) only where the tangent is evaluated, not under
     ``grad``.
     """
-    shapes = [jax.ShapeDtypeStruct(jnp.shape(t), jnp.result_type(t)) for t in ts]
+    shapes = [_spec(t) for t in ts]
     n_real = sum(math.prod(s.shape) for s, r in zip(shapes, real, strict=True) if r)
     active = current()
     max_columns = active.forward_jacobian_max if max_columns is None else max_columns

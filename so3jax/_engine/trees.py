@@ -20,6 +20,11 @@ def _is_float(x) -> bool:
     return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
 
 
+def _spec(x) -> jax.ShapeDtypeStruct:
+    """The shape and dtype of ``x``."""
+    return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
+
+
 def _floats(tree) -> list:
     return [x for x in jax.tree.leaves(tree) if _is_float(x)]
 
