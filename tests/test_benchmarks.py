@@ -8,6 +8,7 @@ importing JAX, diffrax and matplotlib again.
 import json
 import runpy
 import sys
+import warnings
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -277,3 +278,26 @@ def test_vehicle_quick(tmp_path):
         assert r["run_s"] == min(r["rounds"]) > 0 and r["compile_s"] > 0
         assert r["body_steps_per_s"] == pytest.approx(res["batch"] * res["n_steps"] / r["run_s"])
         assert r["finite_fraction"] == 1.0 and r["layout"] in ("array", "scalarized")
+
+
+def test_vehicle_figure_keeps_a_ratio_far_below_one_in_view(tmp_path, monkeypatch):
+    """A quick run's ratio (one round of a tiny batch) can fall far below 1: its bar stays
+    in view and the figure's layout holds, with no layout warning."""
+    monkeypatch.syspath_prepend(str(BENCH))  # vehicle.py imports _common from its folder
+    vehicle = runpy.run_path(str(BENCH / "vehicle.py"), run_name="vehicle")
+    row = {"dtype": "float32", "config": "full vehicle", "ratio": 0.1, "ratio_range": [0.05, 0.2]}
+    data = {
+        "configs": {"plain": [], "full vehicle": []},
+        "dtypes": ["float32"],
+        "rows": [row],
+        "env": {"backend": "cpu", "cpu_count": 2, "device_kind": "cpu"},
+        "batch": 8,
+        "n_steps": 10,
+    }
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fig = vehicle["figure"](data)
+        fig.savefig(tmp_path / "vehicle-quick.png", dpi=40)
+    bottom = fig.axes[0].get_ylim()[0]
+    plt.close(fig)
+    assert bottom <= 0.05
