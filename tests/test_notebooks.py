@@ -110,17 +110,41 @@ def _kernel_env(scratch: Path) -> dict[str, str]:
     return env
 
 
+def _without_heartbeat():
+    """A kernel client class that starts no heartbeat channel.
+
+    The kernel is a local process that its manager polls for liveness, so the heartbeat
+    adds nothing here. Stopping jupyter_client's heartbeat thread at a kernel's cleanup
+    can hang (its thread stayed in an ``await`` on the heartbeat socket, and
+    ``HBChannel.stop`` joins it without a timeout), which hung a whole CI run.
+    """
+    from jupyter_client.asynchronous import AsyncKernelClient
+
+    class Client(AsyncKernelClient):
+        def start_channels(self, *args, **kwargs):
+            kwargs["hb"] = False
+            return super().start_channels(*args, **kwargs)
+
+    return Client
+
+
 def _execute(path: Path, cwd: Path) -> list[str]:
     """Run a notebook in a fresh kernel; return its errors (empty: it ran through)."""
+    from jupyter_client.manager import AsyncKernelManager
+
     nb = nbformat.read(path, as_version=4)
     cwd.mkdir(parents=True)
+    km = AsyncKernelManager(kernel_name=KERNEL)
+    km.client_factory = _without_heartbeat()
     client = nbclient.NotebookClient(
         nb,
+        km=km,
         timeout=CELL_TIMEOUT,
         kernel_name=KERNEL,
         # A scratch working directory: anything a notebook writes stays out of the repo.
         resources={"metadata": {"path": str(cwd)}},
     )
+    client.owns_km = True  # so it shuts the kernel down and stops its channels at the end
     try:
         client.execute()
     except nbclient.exceptions.CellExecutionError as e:
