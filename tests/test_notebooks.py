@@ -17,6 +17,7 @@ from the current code.
 
 from __future__ import annotations
 
+import functools
 import gc
 import importlib.util
 import json
@@ -110,6 +111,7 @@ def _kernel_env(scratch: Path) -> dict[str, str]:
     return env
 
 
+@functools.cache
 def _without_heartbeat():
     """A kernel client class that starts no heartbeat channel.
 

@@ -90,7 +90,7 @@ class Strategy:
         ``"settle"`` pass starts with zeros (`settle.carry_tangents`)."""
         p_leaves, treedef = jax.tree.flatten(primals)
         t_leaves, real = _tangent_leaves(tangents)
-        n = sum(math.prod(jnp.shape(t)) for t, z in zip(t_leaves, real, strict=True) if z)
+        n = _size(_pick(real, t_leaves))
         _plan.note("derivative", strategy=self.name, scalars=n, why=self.why)
         t_leaves, nz = settle.carry_tangents(
             loop.step, primals, p_leaves, t_leaves, real, loop.jaxprs
