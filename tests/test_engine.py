@@ -932,6 +932,13 @@ def test_dependence_walk():
     assert _engine.masks._depends(g, [x, x], [True, False]) == [True, False]
     assert _engine.masks._depends(g, [x, x], [False, True]) == [False, True]
 
+    def h(a, b):  # every reduction the scalarizer knows keeps the reduced rows apart
+        s = jnp.stack([a, b])
+        return jnp.prod(s, axis=1)[0], jnp.sum(s, axis=1)[1], jnp.max(s, axis=1)[0]
+
+    assert _engine.masks._depends(h, [x, x], [True, False]) == [True, False, True]
+    assert _engine.masks._depends(h, [x, x], [False, True]) == [False, True, False]
+
 
 def test_gpu_layout_table(monkeypatch):
     """On a GPU `batched_layout` takes ``gpu_layout``'s entries, and the plan says so

@@ -32,10 +32,6 @@ def _jaxpr_depends(jaxpr, args: list, dep: list) -> list:
     return [bool(m.any()) for m in _mask_eval(jaxpr, ins)]
 
 
-#: Reductions: an entry of the result depends on what it reduces.
-_REDUCTIONS = frozenset({"reduce_sum", "reduce_max", "reduce_min"})
-
-
 def _dot_mask(lhs, rhs, dimension_numbers) -> np.ndarray:
     """The mask of ``dot_general(lhs, rhs)``: an entry depends on what it sums."""
     (cl, cr), (bl, br) = dimension_numbers
@@ -76,7 +72,7 @@ def _mask_eval(jaxpr, ins: list) -> list:
         try:
             if name in sc.SHAPE_OPS:
                 outs = sc.SHAPE_OPS[name](xs, prm)
-            elif name in _REDUCTIONS:
+            elif name in sc._REDUCTIONS:  # an entry depends on the entries it reduces
                 outs = [np.any(xs[0], axis=tuple(prm["axes"]))]
             elif name == "dot_general":
                 outs = [_dot_mask(*xs, prm["dimension_numbers"])]
