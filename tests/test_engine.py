@@ -471,9 +471,9 @@ def test_reverse_over_reverse_transposes_by_columns():
 
 
 def test_linear_call_under_a_vmap_it_does_not_depend_on():
-    """JAX calls `_register_linear_call_batching`'s rule under every ``vmap`` in scope,
-    also one no argument of the call is batched over; the rule must then leave the
-    outputs unbatched (batched, ``out_axes=None`` raises)."""
+    """JAX calls the batching rule of so3jax's ``linear_call`` (`so3jax._engine.linear_call`)
+    under every ``vmap`` in scope, also one no argument of the call is batched over; the
+    rule must then leave the outputs unbatched (batched, ``out_axes=None`` raises)."""
     p = jnp.linspace(1.3, 0.7, 2)
     g = jax.grad(lambda q: _toy_second(q, "adjoint", False))
     ref = g(p)
