@@ -8,7 +8,8 @@ cost), and ``grad``, ``jacfwd`` and ``jax.hessian`` of that mean (first derivati
 for `FIRST_ORDER`). The reference is the
 same call with every pass off (`so3jax._engine.policy.using(passes=frozenset())`): the
 array program, batched and differentiated by the engine's derivative strategies, which
-``tests/test_engine.py`` proves equal to JAX's own autodiff.
+``tests/test_engine.py`` proves equal to JAX's own autodiff. Each case is built in float64
+or float32 (scene, starts and ``k``), and the results must stay in that dtype (`RTOL`).
 
 The policy the passes run under (`SMALL`) lowers the batch thresholds, so that a batch of
 four runs is scalarized, cut, tiled and hoisted as a large one would be: the passes act
@@ -63,15 +64,15 @@ SMALL = policy.DEFAULT.replace(
 )
 
 
-def _starts(key, n):
-    return s.initial_states(jax.random.key(key), n)
+def _starts(key, n, dtype):
+    return s.initial_states(jax.random.key(key), n, dtype=dtype)
 
 
-def _attitude(method):
+def _attitude(method, dtype):
     """The seed (tracking a moving reference) stepped by ``method``."""
-    scene = s.scenes.seed()
-    R0s, W0s = _starts(1, B)
-    w = jnp.linspace(0.5, 1.5, 9).reshape(3, 3)
+    scene = s.scenes.seed(dtype=dtype)
+    R0s, W0s = _starts(1, B, dtype)
+    w = jnp.linspace(0.5, 1.5, 9, dtype=dtype).reshape(3, 3)
 
     def one(k, R0, W0):
         tr = s.simulate(with_gains(scene, k[0], k[1]), method, 0.01, N, SAVE, R0=R0, Omega0=W0)
@@ -84,12 +85,12 @@ def _attitude(method):
     return one, trajectory, (R0s, W0s)
 
 
-def _quadrotor():
+def _quadrotor(dtype):
     """The quadrotor of Lee et al. on DiffTune's circle, its control held over each step;
     ``k`` scales the attitude and rate gains."""
     dt = 0.0025
-    scene = s.scenes.quadrotor_circle(control_period=dt)
-    R0s, _ = _starts(2, B)
+    scene = s.scenes.quadrotor_circle(control_period=dt, dtype=dtype)
+    R0s, _ = _starts(2, B, dtype)
     R0s = jax.vmap(lambda R: s.exp(0.3 * s.log(R)))(R0s)  # tilted starts
 
     def scaled(k):
@@ -99,19 +100,19 @@ def _quadrotor():
         )
 
     def one(k, R0, _):
-        tr = s.simulate(scaled(k / K0), s.LieEuler(), dt, N, SAVE, R0=R0)
+        tr = s.simulate(scaled(k / K0.astype(dtype)), s.LieEuler(), dt, N, SAVE, R0=R0)
         return jnp.sum(tr.extras["e_x"] ** 2) + jnp.sum(tr.R[..., 2, :])
 
     def trajectory(k):
-        tr = s.simulate(scaled(k / K0), s.LieEuler(), dt, N, SAVE)
+        tr = s.simulate(scaled(k / K0.astype(dtype)), s.LieEuler(), dt, N, SAVE)
         return tr.R, tr.Omega
 
     return one, trajectory, (R0s, R0s)
 
 
-def _cond():
+def _cond(dtype):
     """A toy loop whose step branches with ``lax.cond`` on its state."""
-    W = jnp.array([1.0, -0.5, 0.25])
+    W = jnp.array([1.0, -0.5, 0.25], dtype)
 
     def step(P, c):
         x, i = c
@@ -125,7 +126,7 @@ def _cond():
     def go(k, x0):
         return run(step, observe, k, (x0, jnp.array(0, jnp.int32)), N, SAVE)[0]
 
-    x0s = jnp.array([[0.1, 0.4, -0.3], [0.3, -0.2, 0.5], [-0.4, 0.1, 0.2], [0.2, 0.2, 0.2]])
+    x0s = jnp.array([[0.1, 0.4, -0.3], [0.3, -0.2, 0.5], [-0.4, 0.1, 0.2], [0.2, 0.2, 0.2]], dtype)
 
     def one(k, x0, _):
         return jnp.sum(go(k, x0)[0])
@@ -136,19 +137,19 @@ def _cond():
     return one, trajectory, (x0s, x0s)
 
 
-def _case(name):
+def _case(name, dtype):
     if name == "seed":
-        return _attitude(s.LieEuler())
+        return _attitude(s.LieEuler(), dtype)
     if name == "lgvi":
-        return _attitude(s.LGVI())
+        return _attitude(s.LGVI(), dtype)
     if name == "quadrotor":
-        return _quadrotor()
-    return _cond()
+        return _quadrotor(dtype)
+    return _cond(dtype)
 
 
-def functions(name) -> dict:
-    """The five transforms of case ``name``, each a function of ``k``."""
-    one, trajectory, starts = _case(name)
+def functions(name, dtype="float64") -> dict:
+    """The five transforms of case ``name`` in ``dtype``, each a function of ``k``."""
+    one, trajectory, starts = _case(name, dtype)
 
     def mean(k):
         return jnp.mean(jax.vmap(lambda a, b: one(k, a, b))(*starts))
@@ -165,22 +166,22 @@ def functions(name) -> dict:
     return fns
 
 
-def results(name, passes) -> dict:
-    """Every transform of case ``name`` under `SMALL` with ``passes`` on."""
+def results(name, passes, dtype="float64") -> dict:
+    """Every transform of case ``name`` in ``dtype`` under `SMALL` with ``passes`` on."""
     with policy.using(SMALL, passes=frozenset(passes)):
-        out = {t: f(K0) for t, f in functions(name).items()}
+        out = {t: f(K0.astype(dtype)) for t, f in functions(name, dtype).items()}
         return jax.tree.map(np.asarray, out)
 
 
 @functools.cache
-def cached(name, passes: frozenset) -> dict:
+def cached(name, passes: frozenset, dtype="float64") -> dict:
     """`results`, computed once per process."""
-    return results(name, passes)
+    return results(name, passes, dtype)
 
 
-def reference(name) -> dict:
+def reference(name, dtype="float64") -> dict:
     """`results` with every pass off."""
-    return cached(name, frozenset())
+    return cached(name, frozenset(), dtype)
 
 
 #: Cases whose second derivatives are not compiled in the suite: a Hessian of LGVI's or
@@ -208,6 +209,34 @@ ALONE = _cases_from("SO3JAX_TEST_PASS_CASES", "cond")
 TOGETHER = _cases_from("SO3JAX_TEST_PASS_TOGETHER", ",".join(CASES))
 
 
+def alone(pass_name: str) -> tuple:
+    """The cases pass ``pass_name`` is proved alone on: `ALONE`, less those it leaves
+    unchanged (`assert_acts`): ``frames`` acts on attitude tangents, which the ``lax.cond``
+    step has none of, so it is proved on the seed."""
+    if pass_name == "frames":
+        return tuple(c for c in ALONE if c != "cond") or ("seed",)
+    return ALONE
+
+
+@functools.cache
+def programs(name, passes: frozenset) -> dict:
+    """The printed jaxpr of every transform of case ``name`` under `SMALL` with ``passes``
+    on (traced, not run)."""
+    with policy.using(SMALL, passes=passes):
+        fns = functions(name)
+        return {t: str(jax.make_jaxpr(f)(K0)) for t, f in fns.items()}
+
+
+def assert_acts(pass_name: str, name: str) -> None:
+    """Pass ``pass_name`` changes the program of at least one transform of case ``name``
+    (against what it needs alone, `NEEDS`), so that the comparison with the reference is
+    not of a program with itself."""
+    needs = frozenset(NEEDS[pass_name])
+    on, off = programs(name, needs | {pass_name}), programs(name, needs)
+    changed = [t for t in on if on[t] != off[t]]
+    assert changed, (pass_name, name, "the pass changes no transform's program")
+
+
 def plan(name, transform, passes):
     """`so3jax.explain` of one transform of case ``name`` with ``passes`` on."""
     fn = functions(name)[transform]
@@ -215,14 +244,28 @@ def plan(name, transform, passes):
         return s.explain(getattr(fn, "__wrapped__", fn), K0)
 
 
-def assert_equal_to_reference(passes, name, rtol=1e-10):
-    """Every transform of case ``name`` with ``passes`` on equals the reference to ``rtol``
-    (relative to each result's largest entry)."""
-    got = cached(name, frozenset(passes))
-    ref = reference(name)
+#: How closely a program with passes on equals the reference, relative to each result's
+#: largest entry: the passes reorder floating-point operations (terms written out,
+#: components instead of arrays, three-number tangents), so the two agree to round-off
+#: accumulated over the run and its derivatives, not bit for bit.
+RTOL = {"float64": 1e-12, "float32": 1e-5}
+
+#: The dtypes each pass is proved in: float32 on the steps of `ALONE` (each pass alone and
+#: all together); float64 on every case.
+DTYPES = tuple(RTOL)
+
+
+def assert_equal_to_reference(passes, name, dtype="float64"):
+    """Every transform of case ``name`` in ``dtype`` with ``passes`` on equals the
+    reference to `RTOL` (relative to each result's largest entry), and stays in ``dtype``."""
+    got = cached(name, frozenset(passes), dtype)
+    ref = reference(name, dtype)
     assert got.keys() == ref.keys()
     for t in got:
         for a, b in zip(jax.tree.leaves(got[t]), jax.tree.leaves(ref[t]), strict=True):
+            assert a.dtype == b.dtype, (sorted(passes), name, t, a.dtype, b.dtype)
+            if np.issubdtype(b.dtype, np.floating):
+                assert b.dtype == np.dtype(dtype), (name, t, b.dtype)
             scale = max(float(np.max(np.abs(b))), 1e-300)
             err = float(np.max(np.abs(a - b))) / scale
-            assert err < rtol, (sorted(passes), name, t, err)
+            assert err < RTOL[dtype], (sorted(passes), name, t, dtype, err)

@@ -1,10 +1,11 @@
 """The ``"hoist"`` pass (each loop one kernel on a CPU) equals the reference.
 
-Under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian`` (`_cases`): the pass alone
-(with what it needs, `_cases.NEEDS`) against every pass off, on the steps of `_cases.ALONE`;
-``test_passes_together.py`` runs every pass together on the
-steps of `_cases.TOGETHER`. The plan (`so3jax.explain`) shows the pass acting, so the
-comparison is not of a program with itself.
+Under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian`` (`_cases`), in float64
+and float32: the pass alone (with what it needs, `_cases.NEEDS`) against every pass off,
+on the steps of `_cases.alone`; ``test_passes_together.py`` runs every pass together on
+the steps of `_cases.TOGETHER`. The pass changes the program compared (`_cases.assert_acts`), so the
+comparison is not of a program with itself, and the plan (`so3jax.explain`) shows it
+acting.
 """
 
 import _cases as C
@@ -17,9 +18,11 @@ from hypothesis import given, settings
 from so3jax._engine.programs import _pack, _unpack
 
 
-@pytest.mark.parametrize("case", C.ALONE)
-def test_alone_equals_reference(case):
-    C.assert_equal_to_reference(C.NEEDS["hoist"] | {"hoist"}, case)
+@pytest.mark.parametrize("dtype", C.DTYPES)
+@pytest.mark.parametrize("case", C.alone("hoist"))
+def test_alone_equals_reference(case, dtype):
+    C.assert_equal_to_reference(C.NEEDS["hoist"] | {"hoist"}, case, dtype)
+    C.assert_acts("hoist", case)
 
 
 @pytest.mark.parametrize("case", ("seed",))

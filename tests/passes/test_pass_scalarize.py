@@ -1,11 +1,12 @@
 """The ``"scalarize"`` pass (a batch as a structure-of-arrays program of scalar components) equals
 the reference.
 
-Under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian`` (`_cases`): the pass alone
-(with what it needs, `_cases.NEEDS`) against every pass off, on the steps of `_cases.ALONE`;
-``test_passes_together.py`` runs every pass together on the
-steps of `_cases.TOGETHER`. The plan (`so3jax.explain`) shows the pass acting, so the
-comparison is not of a program with itself.
+Under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian`` (`_cases`), in float64
+and float32: the pass alone (with what it needs, `_cases.NEEDS`) against every pass off,
+on the steps of `_cases.alone`; ``test_passes_together.py`` runs every pass together on
+the steps of `_cases.TOGETHER`. The pass changes the program compared (`_cases.assert_acts`), so the
+comparison is not of a program with itself, and the plan (`so3jax.explain`) shows it
+acting.
 """
 
 import _cases as C
@@ -18,9 +19,11 @@ def fresh(fn):
     return lambda *args: fn(*args)
 
 
-@pytest.mark.parametrize("case", C.ALONE)
-def test_alone_equals_reference(case):
-    C.assert_equal_to_reference(C.NEEDS["scalarize"] | {"scalarize"}, case)
+@pytest.mark.parametrize("dtype", C.DTYPES)
+@pytest.mark.parametrize("case", C.alone("scalarize"))
+def test_alone_equals_reference(case, dtype):
+    C.assert_equal_to_reference(C.NEEDS["scalarize"] | {"scalarize"}, case, dtype)
+    C.assert_acts("scalarize", case)
 
 
 @pytest.mark.parametrize("case", ("seed",))

@@ -1,20 +1,23 @@
 """The ``"unroll"`` pass (small reductions written out term by term, so derivative loops can be
 hoisted) equals the reference.
 
-Under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian`` (`_cases`): the pass alone
-(with what it needs, `_cases.NEEDS`) against every pass off, on the steps of `_cases.ALONE`;
-``test_passes_together.py`` runs every pass together on the
-steps of `_cases.TOGETHER`. The plan (`so3jax.explain`) shows the pass acting, so the
-comparison is not of a program with itself.
+Under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian`` (`_cases`), in float64
+and float32: the pass alone (with what it needs, `_cases.NEEDS`) against every pass off,
+on the steps of `_cases.alone`; ``test_passes_together.py`` runs every pass together on
+the steps of `_cases.TOGETHER`. The pass changes the program compared (`_cases.assert_acts`), so the
+comparison is not of a program with itself, and the plan (`so3jax.explain`) shows it
+acting.
 """
 
 import _cases as C
 import pytest
 
 
-@pytest.mark.parametrize("case", C.ALONE)
-def test_alone_equals_reference(case):
-    C.assert_equal_to_reference(C.NEEDS["unroll"] | {"unroll"}, case)
+@pytest.mark.parametrize("dtype", C.DTYPES)
+@pytest.mark.parametrize("case", C.alone("unroll"))
+def test_alone_equals_reference(case, dtype):
+    C.assert_equal_to_reference(C.NEEDS["unroll"] | {"unroll"}, case, dtype)
+    C.assert_acts("unroll", case)
 
 
 @pytest.mark.parametrize("case", ("seed",))
