@@ -7,7 +7,8 @@ runs) counts 128, since XLA computes it once per element of that output. Summed 
 operations of the run-sized shapes, it is the work of one loop step, and its ratios
 (the seed gradient's over 256 runs against its forward pass's, with and without column
 cuts) follow the measured times. It needs no quiet machine, so it ranks fusion choices
-(the engine policy's ``column_cut_cone``, `so3jax._engine.policy.Policy`) where timings move by 10 %.
+(the engine policy's ``column_cut_cone``, `so3jax._engine.policy.Policy`) where timings
+move by 10 %.
 
 Writes ``results/element-work[-quick].json`` and ``.png`` (each variant's step work, split
 into the primal's operations, the tangent columns', and the primal's recomputed inside
