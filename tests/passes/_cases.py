@@ -294,3 +294,11 @@ def assert_equal_to_reference(passes, name, dtype="float64"):
             scale = max(float(np.max(np.abs(b))), 1e-300)
             err = float(np.max(np.abs(a - b))) / scale
             assert err < RTOL[dtype], (sorted(passes), name, t, dtype, err)
+
+
+def assert_alone_equals_reference(pass_name: str, name: str, dtype="float64") -> None:
+    """Pass ``pass_name`` alone (with what it needs, `NEEDS`) equals the reference on case
+    ``name`` in ``dtype`` (`assert_equal_to_reference`), and changes what it is compared
+    on (`assert_acts`)."""
+    assert_equal_to_reference(NEEDS[pass_name] | {pass_name}, name, dtype)
+    assert_acts(pass_name, name)
