@@ -76,10 +76,7 @@ def main(path: Path, cwd: Path) -> None:
         elif code and cell_index == code[-1]:
             _report(_errors(nb), sent)
 
-    # IPC sockets in the notebook's own folder: processes that start kernels side by side
-    # cannot race for the same free TCP port (jupyter_client keeps used ports apart only
-    # within one process).
-    km = AsyncKernelManager(kernel_name=KERNEL, transport="ipc", ip=str(cwd / "kernel"))
+    km = AsyncKernelManager(kernel_name=KERNEL)
     km.client_factory = _WithoutHeartbeat
     client = nbclient.NotebookClient(
         nb,
