@@ -106,7 +106,7 @@ def _inertia_matrices(J):
     """``(J, J^-1)`` for principal moments or a matrix (symmetrised): one compiled call.
 
     Eagerly, the same operations compiled one program each on first use, LAPACK's
-    inverse among them (0.15 s); principal moments need none (``1 / J_i`` is what
+    inverse among them; principal moments need none (``1 / J_i`` is what
     the LU inverse of a diagonal matrix gives, to the bit).
     """
     if J.shape == (3,):

@@ -208,9 +208,8 @@ def _safe_theta(t: Array, cutoff: float) -> tuple[Array, Array, Array]:
 
 
 # ``sin`` and ``cos`` for the coefficient functions, vectorisable. XLA on CPU lowers
-# jnp.sin and jnp.cos to a scalar call per element (about 5 ns each in float64 on the
-# 2-core machine, 10x the cost of the code below), which made the two sines of each
-# exponential update 18 % of a batched RKMK4 run. Here: Cody and Waite's reduction
+# jnp.sin and jnp.cos to a scalar call per element, several times the cost of the code
+# below, and each exponential update takes two sines. Here: Cody and Waite's reduction
 # x = k pi/2 + r, |r| <= pi/4, with pi/2 split into pieces whose products with k are
 # exact (float64: the 33-bit pieces of fdlibm's e_rem_pio2.c; float32: those of
 # Cephes' sinf.c, doubled), then Taylor polynomials in r^2 (their first omitted

@@ -201,7 +201,7 @@ def _sum3(x):
     scalarized loops both are the same additions.
     """
     a, b, c = jnp.split(x, 3, axis=-1)  # (its transpose is one concatenation, where
-    return (a + b + c)[..., 0]  # three slices transpose to three pads: 2.3x slower)
+    return (a + b + c)[..., 0]  # three slices would transpose to three pads)
 
 
 def _dot3(x, y):
@@ -887,8 +887,7 @@ def _descend(loss, params, optimizer, opt_state, n_iter, gradient, project, prog
             iterator.set_postfix(cost=f"{history[-1]:.5g}")
     iterates.append(params)
     # The last cost from the compiled step (its update discarded): one more
-    # iteration costs less than compiling the forward pass on its own (DiffTune:
-    # 0.09 s against 1.3 s).
+    # iteration costs less than compiling the forward pass on its own.
     if n_iter:
         history.append(float(step(params, opt_state)[2]))
     else:

@@ -92,9 +92,9 @@ def rkmk_stages(
             f = scene.vector_field(t + tableau.c[i] * h, Yi)
         kt = f.xi if u is None else _pull_back(u, f.xi, exact, order, coords)
         # A stage feeds later ones: materialized, or XLA recomputes it, dexp^-1 and
-        # vector field included, in each (`array_cut_index`; RKMK45's forward pass over
-        # 16 seed runs: 28 against 17 ms). A stage with two consumers (RK4's) pays
-        # for a cut only in the derivative programs (`derivative_cut`).
+        # vector field included, in each (`array_cut_index`). A stage with two
+        # consumers (RK4's) pays for a cut only in the derivative programs
+        # (`derivative_cut`).
         if _consumers(tableau, i) >= 3:
             kt, dx = array_cut(array_cut_index(kt), kt, f.dx)
         else:
@@ -116,11 +116,10 @@ def rkmk_stages_looped(
     instead of its nonzero entries. The vector field, the retraction and
     ``dexp^-1`` are traced once instead of once per stage, as diffrax does for its
     own Runge–Kutta solvers. The adaptive solvers use it: their step sits inside
-    diffrax's loops, which a reverse-mode gradient traces and compiles several times
-    (seed, 2-core CPU: RKMK45's value and gradient through
-    `diffrax.RecursiveCheckpointAdjoint` traced and compiled in 19.6 s against 42.3
-    s unrolled, and ran no slower). The fixed-step methods keep the unrolled stages:
-    the scalarized program has no loops.
+    diffrax's loops, which a reverse-mode gradient (`diffrax.RecursiveCheckpointAdjoint`)
+    traces and compiles several times, so one traced stage compiles faster and runs
+    no slower (``benchmarks/adaptive_compile.py``). The fixed-step methods keep the
+    unrolled stages: the scalarized program has no loops.
     """
     s = tableau.stages
     dtype = y.R.dtype
