@@ -213,7 +213,6 @@ def test_difftune_gradient_matches_central_differences():
     p = jnp.asarray(G0)
     value_and_grad = jax.jit(jax.value_and_grad(difftune_loss))
     g_rev = np.asarray(value_and_grad(p)[1])
-    g_fwd = np.asarray(jax.jit(jax.jacfwd(difftune_loss))(p))
 
     def loss(q):  # the value from the compiled gradient: one compilation less
         return float(value_and_grad(q)[0])
@@ -226,10 +225,9 @@ def test_difftune_gradient_matches_central_differences():
         fd[i] = (loss(p + e) - loss(p - e)) / (2 * h)
     rel = np.abs(g_rev - fd) / np.abs(fd).max()
     print("rel. err of the gradient vs central differences", rel.max())
-    print("forward vs reverse", np.abs(g_fwd - g_rev).max() / np.abs(g_rev).max())
     assert np.all(np.abs(fd) > 0)
     np.testing.assert_allclose(g_rev, fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max())
-    np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-10, atol=1e-12 * np.abs(g_rev).max())
+    # (forward mode through the same 12 gains: test_tune_general_mode_difftune_short)
 
 
 # ----------------------------------------------------------------------------
@@ -325,6 +323,9 @@ def test_tune_general_mode_difftune_short():
     # the same way
     rev = s.tune(sc, gradient="reverse", **kw)
     np.testing.assert_allclose(rev.cost_history, res.cost_history, rtol=1e-10)
+    # the same iterates, so the same gradients
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-10),
+                 rev.gains_history, res.gains_history)  # fmt: skip
     assert np.all(np.diff(res.cost_history) < 0)
     hist = np.concatenate([np.ravel(a) for a in jax.tree.leaves(res.gains_history)])
     assert hist.min() >= 0.5 and hist.max() <= 16.02  # projected onto the bounds ...
