@@ -7,8 +7,9 @@ block
     ...
     <!-- /report:NAME -->
 
-found in ``README.md``, ``benchmarks/README.md`` and ``docs/performance.md`` with the
-table ``NAME`` built from those results (`BLOCKS` lists the names). ``--check`` writes
+found in ``README.md``, ``benchmarks/README.md``, ``docs/performance.md`` and
+``docs/integrators.md`` with the table ``NAME`` built from those results (`BLOCKS` lists
+the names). ``--check`` writes
 nothing: it prints a unified diff of each file whose blocks are stale and exits 1 if
 any is. ``--root DIR`` reads and writes another checkout of the repository.
 
@@ -33,7 +34,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = "benchmarks/results"
-FILES = ("README.md", "benchmarks/README.md", "docs/performance.md")
+FILES = ("README.md", "benchmarks/README.md", "docs/performance.md", "docs/integrators.md")
 BLOCK = re.compile(r"<!-- report:(?P<name>[\w-]+) -->(?P<body>.*?)<!-- /report:(?P=name) -->", re.S)
 OPEN = re.compile(r"<!-- (/?)report:([\w-]+) -->")
 NOT_MEASURED = "not measured"
