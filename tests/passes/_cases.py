@@ -298,7 +298,11 @@ def assert_equal_to_reference(passes, name, dtype="float64"):
 
 def assert_alone_equals_reference(pass_name: str, name: str, dtype="float64") -> None:
     """Pass ``pass_name`` alone (with what it needs, `NEEDS`) equals the reference on case
-    ``name`` in ``dtype`` (`assert_equal_to_reference`), and changes what it is compared
-    on (`assert_acts`)."""
+    ``name`` in ``dtype`` under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian``
+    (`assert_equal_to_reference`), and changes what it is compared on (`assert_acts`), so
+    the comparison is not of a program with itself.
+
+    Each ``test_pass_<name>.py`` runs it on the steps of `alone`, in every dtype of
+    `DTYPES`; ``test_passes_together.py`` runs every pass together on those of `TOGETHER`."""
     assert_equal_to_reference(NEEDS[pass_name] | {pass_name}, name, dtype)
     assert_acts(pass_name, name)

@@ -1,12 +1,8 @@
 """The ``"scalarize"`` pass (a batch as a structure-of-arrays program of scalar components) equals
 the reference.
 
-Under ``jit``, ``vmap``, ``grad``, ``jacfwd`` and ``jax.hessian`` (`_cases`), in float64
-and float32: the pass alone (with what it needs, `_cases.NEEDS`) against every pass off,
-on the steps of `_cases.alone`; ``test_passes_together.py`` runs every pass together on
-the steps of `_cases.TOGETHER`. The pass changes the program compared (`_cases.assert_acts`), so the
-comparison is not of a program with itself, and the plan (`so3jax.explain`) shows it
-acting.
+Proved as every pass is: `_cases.assert_alone_equals_reference` under every transform and
+dtype, and the plan (`so3jax.explain`) shows the pass acting.
 """
 
 import _cases as C
