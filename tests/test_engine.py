@@ -1084,9 +1084,10 @@ def _hoisted_in(text: str) -> bool:
 
 
 #: Tests that force hoisting on: only on the jaxlib releases the suite has passed on
-#: with it (`_engine._jax.TESTED`); elsewhere the engine leaves it off.
+#: with it (`_engine._jax.HOIST_TESTED`); elsewhere the engine leaves it off.
 needs_hoisting = pytest.mark.skipif(
-    not _engine.policy.hoisting_verified(), reason="hoisting is off on this jaxlib (_jax.TESTED)"
+    not _engine.policy.hoisting_verified(),
+    reason="hoisting is off on this jaxlib (_jax.HOIST_TESTED)",
 )
 
 
@@ -1262,15 +1263,17 @@ def test_small_reductions_written_out_term_by_term():
 def test_hoisting_can_be_turned_off_from_the_environment():
     """``SO3JAX_HOIST_LOOPS=0``: the way out should XLA's older emitter refuse a loop;
     ``1`` asks for hoisting on a jaxlib the suite has not passed on. Unset, loops are
-    hoisted only on the jaxlib releases of `_jax.TESTED` (a loop XLA's older emitter
-    cannot compile aborts the process)."""
+    hoisted only on the jaxlib releases of `_jax.HOIST_TESTED` (a loop XLA cannot compile
+    that way aborts the process), and elsewhere held back with a warning
+    (`test_jax_gate.py`)."""
     import jaxlib
 
-    code = "from so3jax._engine import policy; print(policy.DEFAULT.on('hoist'))"
+    code = "from so3jax._engine import policy as p; print(p.DEFAULT.on('hoist'), p.HOIST_HELD_BACK)"
     release = tuple(int(x) for x in jaxlib.__version__.split(".")[:2])
-    unset = str(release in _engine._jax.TESTED)
-    assert unset == str(_engine.policy.hoisting_verified())
-    for value, want in (("0", "False"), ("1", "True"), (None, unset)):
+    verified = release in _engine._jax.HOIST_TESTED
+    assert verified == _engine.policy.hoisting_verified()
+    cases = (("0", "False False"), ("1", "True False"), (None, f"{verified} {not verified}"))
+    for value, want in cases:
         env = dict(os.environ, JAX_PLATFORMS="cpu")
         env.pop("SO3JAX_HOIST_LOOPS", None)
         if value is not None:

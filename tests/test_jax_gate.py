@@ -1,6 +1,7 @@
 """The version gate of JAX's internals (`so3jax._engine._jax`): on a JAX release outside
 `TESTED`, the engine runs its reference programs (the checkpointed ``lax.scan`` and
-JAX's own autodiff), with the same results, and warns once."""
+JAX's own autodiff), with the same results, and warns once; on a jaxlib outside
+`HOIST_TESTED`, loops are not hoisted, with the same results, and it warns once."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 import so3jax
-from so3jax._engine import _jax
+from so3jax._engine import _jax, policy
 
 SC = so3jax.scenes.seed()
 M = so3jax.RKMK4()
@@ -47,3 +48,25 @@ def test_an_untested_release_takes_the_reference_path(monkeypatch):
     np.testing.assert_allclose(ref_value, value, rtol=1e-12)
     np.testing.assert_allclose(ref_grad, grad, rtol=1e-10)
     _jax.warn_reference_path.cache_clear()
+
+
+def test_a_jaxlib_not_verified_for_hoisting_runs_loops_as_xla_builds_them(monkeypatch):
+    """Where the ``"hoist"`` pass is held back (`policy.HOIST_HELD_BACK`), the plan says why,
+    the first run warns once, and the values are the hoisted runs'."""
+    fast = so3jax.explain(jax.grad(_cost), K)
+    assert any(e["hoisted"] for e in fast.of("hoisting")) == policy.DEFAULT.on("hoist")
+    value, grad = jax.value_and_grad(_cost)(K)
+
+    monkeypatch.setattr(policy, "HOIST_HELD_BACK", True)
+    _jax.warn_no_hoisting.cache_clear()
+    with policy.using(passes=policy.PASSES - {"hoist"}):
+        with pytest.warns(UserWarning, match="one kernel"):
+            plan = so3jax.explain(jax.grad(_cost), K)
+        assert plan.of("hoisting") and not any(e["hoisted"] for e in plan.of("hoisting"))
+        assert all("not verified" in e["why"] for e in plan.of("hoisting")), plan
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # once per process
+            held_value, held_grad = jax.value_and_grad(_cost)(K)
+    np.testing.assert_allclose(held_value, value, rtol=1e-12)
+    np.testing.assert_allclose(held_grad, grad, rtol=1e-10)
+    _jax.warn_no_hoisting.cache_clear()

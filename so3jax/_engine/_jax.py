@@ -22,6 +22,13 @@ from .linear_call import AVAILABLE as _HAVE_LINEAR_CALL
 #: The JAX releases (major, minor) the suite passes on with the engine's fast paths.
 TESTED = frozenset({(0, 10), (0, 11), (0, 12)})
 
+#: The jaxlib releases whose XLA compiles the suite's loops as one kernel on a CPU (the
+#: ``"hoist"`` pass, on by default there only: `so3jax._engine.policy.hoisting_verified`).
+#: XLA aborts the process where it cannot compile one; JAX 0.11's does on a ``vmap`` of a
+#: gradient ("All or none of the slices should have an explicit index",
+#: ``tests/test_engine.py::test_vmap_of_grad_equals_loop_of_grads``).
+HOIST_TESTED = frozenset({(0, 10), (0, 12)})
+
 try:
     from jax.experimental.xla_metadata import set_xla_metadata
 except ImportError:  # pragma: no cover - an older JAX: loops compile as XLA decides
@@ -58,6 +65,21 @@ def warn_reference_path() -> None:
         "reference path (the checkpointed lax.scan and JAX's own autodiff): the same "
         "results, without the scalarized batch layout, the one-pass Jacobian and the "
         "one-kernel loops (several times slower in batches and gradients)",
+        stacklevel=3,
+    )
+
+
+@functools.cache
+def warn_no_hoisting() -> None:
+    """Warn, once per process, that loops are not compiled as one kernel on this jaxlib."""
+    import jaxlib
+
+    warnings.warn(
+        f"so3jax: jaxlib {jaxlib.__version__} is not one of the releases whose XLA compiles "
+        f"so3jax's loops as one kernel ({', '.join(f'{a}.{b}' for a, b in sorted(HOIST_TESTED))}"
+        "); loops run as XLA's default runtime builds them: the same results, several times "
+        "slower for single runs and gradients on a CPU (benchmarks/ablation.py, 'no hoist'). "
+        "SO3JAX_HOIST_LOOPS=1 tries them, at the risk of XLA aborting the process.",
         stacklevel=3,
     )
 

@@ -46,14 +46,14 @@ PASSES = frozenset({"scalarize", "cuts", "frames", "hoist", "unroll", "tiles", "
 
 def hoisting_verified() -> bool:
     """Whether the installed jaxlib is a release the suite passes on with loops hoisted
-    (`so3jax._engine._jax.TESTED`): where XLA cannot compile one, it aborts the process."""
+    (`so3jax._engine._jax.HOIST_TESTED`): where XLA cannot compile one, it aborts the process."""
     try:
         import jaxlib
 
         release = tuple(int(x) for x in jaxlib.__version__.split(".")[:2])
     except (ImportError, AttributeError, ValueError):
         return False
-    return release in _jax.TESTED
+    return release in _jax.HOIST_TESTED
 
 
 @dataclasses.dataclass(frozen=True)
@@ -207,6 +207,11 @@ def _from_env() -> Policy:
 
 #: The policy in force unless `using` says otherwise (built once at import).
 DEFAULT = _from_env()
+
+#: Whether the ``"hoist"`` pass is held back because the installed jaxlib is not verified
+#: for it (`hoisting_verified`) and ``SO3JAX_HOIST_LOOPS`` is unset: a run on one CPU
+#: device then warns once (`so3jax._engine._jax.warn_no_hoisting`).
+HOIST_HELD_BACK = "SO3JAX_HOIST_LOOPS" not in os.environ and not hoisting_verified()
 
 _ACTIVE: contextvars.ContextVar[Policy] = contextvars.ContextVar("so3jax_policy", default=DEFAULT)
 

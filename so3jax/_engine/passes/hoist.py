@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 from jax.extend import core as jex_core
 
-from .. import _jax, plan as _plan
+from .. import _jax, plan as _plan, policy as _policy
 from ..policy import current, one_cpu_device
 from . import scalarize as sc
 from .unroll import _UNROLLED, _unrolled
@@ -108,6 +108,8 @@ def _hoisted(loop: Callable, *args, xs_from: int | None = None):
     policy = current()
     if _jax.set_xla_metadata is None or not policy.on("hoist") or not hoist:
         why = "off (the policy's passes)" if hoist else "a second derivative's loop"
+        if hoist and _policy.HOIST_HELD_BACK:
+            why = "off: this jaxlib is not verified for it (_jax.HOIST_TESTED)"
         _plan.note("hoisting", hoisted=False, runs=runs, why=why)
         return loop(*args)
     # Several devices: XLA partitions after this choice and the older emitter cannot link the
