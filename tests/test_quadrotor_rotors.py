@@ -8,6 +8,7 @@ DOP853 hold by hold.
 """
 
 import dataclasses
+import re
 
 import equinox as eqx
 import jax
@@ -314,9 +315,10 @@ def test_without_options_the_program_is_unchanged(control_period):
     def f(sc):
         return s.simulate(sc, s.RKMK4(), 0.005, 8, save_every=4)
 
-    new_jaxpr = str(jax.make_jaxpr(f)(sc))
-    old_jaxpr = str(jax.make_jaxpr(f)(old)).replace("NominalQuadrotor", "Quadrotor")
-    assert new_jaxpr == old_jaxpr
+    # (JAX 0.10.0 prints the engine's batching rule with its address: a new closure per trace)
+    new_jaxpr = re.sub(" at 0x[0-9a-f]+", "", str(jax.make_jaxpr(f)(sc)))
+    old_jaxpr = re.sub(" at 0x[0-9a-f]+", "", str(jax.make_jaxpr(f)(old)))
+    assert new_jaxpr == old_jaxpr.replace("NominalQuadrotor", "Quadrotor")
     if control_period is not None:
         a, b = f(sc), f(old)
         for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
