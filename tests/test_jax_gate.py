@@ -14,6 +14,7 @@ import pytest
 
 import so3jax
 from so3jax._engine import _jax, policy
+from so3jax._engine.passes import hoist
 
 SC = so3jax.scenes.seed()
 M = so3jax.RKMK4()
@@ -58,7 +59,7 @@ def test_a_jaxlib_not_verified_for_hoisting_runs_loops_as_xla_builds_them(monkey
     value, grad = jax.value_and_grad(_cost)(K)
 
     monkeypatch.setattr(policy, "HOIST_HELD_BACK", True)
-    _jax.warn_no_hoisting.cache_clear()
+    hoist.warn_held_back.cache_clear()
     with policy.using(passes=policy.PASSES - {"hoist"}):
         with pytest.warns(UserWarning, match="one kernel"):
             plan = so3jax.explain(jax.grad(_cost), K)
@@ -69,4 +70,4 @@ def test_a_jaxlib_not_verified_for_hoisting_runs_loops_as_xla_builds_them(monkey
             held_value, held_grad = jax.value_and_grad(_cost)(K)
     np.testing.assert_allclose(held_value, value, rtol=1e-12)
     np.testing.assert_allclose(held_grad, grad, rtol=1e-10)
-    _jax.warn_no_hoisting.cache_clear()
+    hoist.warn_held_back.cache_clear()

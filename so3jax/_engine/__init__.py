@@ -84,8 +84,6 @@ def run(
     if program != "autodiff" and not _jax.supported():
         _jax.warn_reference_path()
         program = "autodiff"
-    elif policy.HOIST_HELD_BACK and policy.one_cpu_device():
-        _jax.warn_no_hoisting()
     _plan.note("loop", n_steps=n_steps, save_every=save_every, program=program)
     if program == "autodiff":
         return loop.fwd_checkpointed(P, carry0)

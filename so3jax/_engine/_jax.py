@@ -69,21 +69,6 @@ def warn_reference_path() -> None:
     )
 
 
-@functools.cache
-def warn_no_hoisting() -> None:
-    """Warn, once per process, that loops are not compiled as one kernel on this jaxlib."""
-    import jaxlib
-
-    warnings.warn(
-        f"so3jax: jaxlib {jaxlib.__version__} is not one of the releases whose XLA compiles "
-        f"so3jax's loops as one kernel ({', '.join(f'{a}.{b}' for a, b in sorted(HOIST_TESTED))}"
-        "); loops run as XLA's default runtime builds them: the same results, several times "
-        "slower for single runs and gradients on a CPU (benchmarks/ablation.py, 'no hoist'). "
-        "SO3JAX_HOIST_LOOPS=1 tries them, at the risk of XLA aborting the process.",
-        stacklevel=3,
-    )
-
-
 def batched(x) -> bool:
     """Whether ``x`` is batched by an enclosing ``vmap`` (a batch tracer with a batch axis).
 

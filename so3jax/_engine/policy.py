@@ -209,8 +209,8 @@ def _from_env() -> Policy:
 DEFAULT = _from_env()
 
 #: Whether the ``"hoist"`` pass is held back because the installed jaxlib is not verified
-#: for it (`hoisting_verified`) and ``SO3JAX_HOIST_LOOPS`` is unset: a run on one CPU
-#: device then warns once (`so3jax._engine._jax.warn_no_hoisting`).
+#: for it (`hoisting_verified`) and ``SO3JAX_HOIST_LOOPS`` is unset: the first loop on one
+#: CPU device then warns (`so3jax._engine.passes.hoist.warn_held_back`).
 HOIST_HELD_BACK = "SO3JAX_HOIST_LOOPS" not in os.environ and not hoisting_verified()
 
 _ACTIVE: contextvars.ContextVar[Policy] = contextvars.ContextVar("so3jax_policy", default=DEFAULT)

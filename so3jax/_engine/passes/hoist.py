@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import functools
 import math
+import warnings
 from collections.abc import Callable
 
 import jax
@@ -96,6 +98,18 @@ def _largest_inner(jaxpr) -> int:
     )
 
 
+@functools.cache
+def warn_held_back() -> None:
+    """Warn, once per process, that loops are not compiled as one kernel on this jaxlib."""
+    warnings.warn(
+        f"so3jax: this jaxlib is not one of {sorted(_jax.HOIST_TESTED)}, whose XLA compiles "
+        "so3jax's loops as one kernel; they run as XLA builds them: the same results, several "
+        "times slower on a CPU (benchmarks/ablation.py, 'no hoist'; SO3JAX_HOIST_LOOPS=1 "
+        "forces it, at the risk of XLA aborting the process)",
+        stacklevel=2,
+    )
+
+
 def _hoisted(loop: Callable, *args, xs_from: int | None = None):
     """``loop(*args)`` (a `lax.scan`), compiled as one kernel on a CPU where the policy and
     XLA's older emitter allow, with its reductions written out (`_unrolled`) if only they
@@ -110,6 +124,8 @@ def _hoisted(loop: Callable, *args, xs_from: int | None = None):
         why = "off (the policy's passes)" if hoist else "a second derivative's loop"
         if hoist and _policy.HOIST_HELD_BACK:
             why = "off: this jaxlib is not verified for it (_jax.HOIST_TESTED)"
+            if one_cpu_device():
+                warn_held_back()
         _plan.note("hoisting", hoisted=False, runs=runs, why=why)
         return loop(*args)
     # Several devices: XLA partitions after this choice and the older emitter cannot link the
