@@ -50,7 +50,10 @@ configuration over that of "all passes" (log scale; pale where the program is th
     python benchmarks/ablation.py            # the sizes above: several minutes
     python benchmarks/ablation.py --quick    # smoke run: a 20-step run, "all passes" and "none"
     python benchmarks/ablation.py --workloads "large grad" --merge  # one workload again
+    python benchmarks/ablation.py --compile-rounds 1  # on a device lease (`gpu.sh ablation`)
 
+After each workload, ``ablation[-<backend>][-quick].partial.json`` holds the workloads
+finished, in the final file's schema: a run cut off keeps them.
 ``--merge`` measures the workloads named and replaces their rows in the existing results
 (every ratio is within one workload; ``merged`` gives the environment of each workload
 measured apart).
@@ -308,43 +311,21 @@ def merged(path, new: dict) -> dict:
     return out
 
 
-def main():
-    def extra(p):
-        p.set_defaults(repeats=3)
-        p.add_argument("--configs", nargs="+", choices=list(CONFIGS), help="default: all")
-        p.add_argument("--workloads", nargs="+", help="default: all (--quick: run)")
-        p.add_argument(
-            "--merge",
-            action="store_true",
-            help="replace these workloads' rows in the existing results, keep the others",
-        )
-
-    args = C.parse_args(__doc__.splitlines()[0], extra)
-    wl = workloads(args.quick)
-    names = args.workloads or (["run"] if args.quick else list(wl))
-    unknown = set(names) - set(wl)
-    if unknown:
-        raise ValueError(f"--workloads: unknown {sorted(unknown)}; known: {list(wl)}")
-    configs = args.configs or ([BASE, "none"] if args.quick else list(CONFIGS))
-    if BASE not in configs:
-        configs = [BASE, *configs]  # the baseline of every ratio
-    rows = []
-    for w in C.progress(names, "ablation"):
-        label, make, takes_program = wl[w]
-        min_s = 0.0 if args.quick else 0.5
-        compiles = 1 if args.quick else COMPILE_ROUNDS
-        for r in measure(make, takes_program, configs, args.repeats, min_s, compiles):
-            rows.append({"workload": w, **r})
-        C.write_partial(args, "ablation", rows)
-    n = sizes(args.quick)
-    data = {
+def results(args, names: list[str], configs: list[str], rows: list[dict]) -> dict:
+    """The JSON of the workloads ``names`` measured so far (their ``rows``)."""
+    wl, n = workloads(args.quick), sizes(args.quick)
+    base = {r["workload"]: r for r in rows if r["config"] == BASE}
+    for r in rows:
+        r["ratio"] = r["run_s"] / base[r["workload"]]["run_s"]
+        r["compile_ratio"] = r["compile_s"] / base[r["workload"]]["compile_s"]
+    return {
         "benchmark": "ablation",
         "quick": args.quick,
         "env": C.environment(),
         "dtype": "float64",
         "method": "RKMK4 (LGVI where a workload names it)",
         "repeats": args.repeats,
-        "compile_rounds": 1 if args.quick else COMPILE_ROUNDS,
+        "compile_rounds": args.compile_rounds,
         "passes": sorted(policy.PASSES),
         "configs": {
             c: {"passes_off": sorted(policy.PASSES - CONFIGS[c][0]), "program": CONFIGS[c][1]}
@@ -356,10 +337,48 @@ def main():
         },
         "rows": rows,
     }
-    base = {r["workload"]: r for r in rows if r["config"] == BASE}
-    for r in rows:
-        r["ratio"] = r["run_s"] / base[r["workload"]]["run_s"]
-        r["compile_ratio"] = r["compile_s"] / base[r["workload"]]["compile_s"]
+
+
+def main():
+    def extra(p):
+        p.set_defaults(repeats=3)
+        p.add_argument("--configs", nargs="+", choices=list(CONFIGS), help="default: all")
+        p.add_argument("--workloads", nargs="+", help="default: all (--quick: run)")
+        p.add_argument(
+            "--compile-rounds",
+            type=int,
+            default=None,
+            help=f"compilations of each workload per configuration (default {COMPILE_ROUNDS}"
+            ", --quick: 1); fewer for a device lease with a time limit",
+        )
+        p.add_argument(
+            "--merge",
+            action="store_true",
+            help="replace these workloads' rows in the existing results, keep the others",
+        )
+
+    args = C.parse_args(__doc__.splitlines()[0], extra)
+    if args.compile_rounds is None:
+        args.compile_rounds = 1 if args.quick else COMPILE_ROUNDS
+    wl = workloads(args.quick)
+    names = args.workloads or (["run"] if args.quick else list(wl))
+    unknown = set(names) - set(wl)
+    if unknown:
+        raise ValueError(f"--workloads: unknown {sorted(unknown)}; known: {list(wl)}")
+    configs = args.configs or ([BASE, "none"] if args.quick else list(CONFIGS))
+    if BASE not in configs:
+        configs = [BASE, *configs]  # the baseline of every ratio
+    json_path, png_path = C.output_paths(args, "ablation")
+    rows = []
+    for i, w in enumerate(C.progress(names, "ablation")):
+        label, make, takes_program = wl[w]
+        min_s = 0.0 if args.quick else 0.5
+        for r in measure(make, takes_program, configs, args.repeats, min_s, args.compile_rounds):
+            rows.append({"workload": w, **r})
+        # What finished, in the final schema: a run cut off keeps its complete workloads.
+        partial = results(args, names[: i + 1], configs, rows)
+        C.write_json(json_path.with_suffix(".partial.json"), partial, quiet=True)
+    data = results(args, names, configs, rows)
     C.print_table(
         [
             {
@@ -376,7 +395,6 @@ def main():
         ["workload", "config", "ms", "x all passes", "compile s", "same program", "rel diff"],
         title="time with each pass off, over the time with all passes",
     )
-    json_path, png_path = C.output_paths(args, "ablation")
     if args.merge:
         data = merged(json_path, data)
     C.write_json(json_path, data)

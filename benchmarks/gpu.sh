@@ -12,7 +12,8 @@
 # sweep-scalarized, and two more that are not run by default: hessian (`tune.py`'s two
 # Hessian variants at 256 runs, about 80 s on an H100) and derivatives (`layouts.py
 # --derivatives 4096`: the forward pass, `grad` and `jacfwd` at 4096 runs with the
-# engine's program and the array program forced).
+# engine's program and the array program forced), and ablation (`ablation.py
+# --compile-rounds 1`: every pass off in turn, about 490 s on an H200; on its own lease).
 # `layouts.py` (about 220 s on the H100) is a second call when time is left. Results:
 # OUT_DIR/gpu.log and OUT_DIR/gpu-results.tar.gz (the scripts' <name>-gpu.json / .png).
 set -u
@@ -22,15 +23,15 @@ shift $(($# < 2 ? $# : 2))
 steps=" ${*:-throughput tune equal sweep sweep-scalarized} "
 here=$(cd "$(dirname "$0")" && pwd)
 res=$out/results
-mkdir -p "$res"/{tp,tune,sweep,sweep-scalarized,hessian,derivatives}
+mkdir -p "$res"/{tp,tune,sweep,sweep-scalarized,hessian,derivatives,ablation}
 log=$out/gpu.log
 export PYTHONUNBUFFERED=1 PYTHONPATH=$here/..:${PYTHONPATH:-}
 py=${PYTHON:-python3}
 if [ "$scale" = full ]; then
-  big="2048 1048576"; lim=(200 160 90 100 100 150); tb="256 4096"; chunk=65536; q=
+  big="2048 1048576"; lim=(200 160 90 100 100 150 540); tb="256 4096"; chunk=65536; q=
   hb=256; db=4096
 else
-  big="8 64"; lim=(150 120 120 120 120 120); tb="4"; chunk=256; q=--quick; hb=4; db=8
+  big="8 64"; lim=(150 120 120 120 120 120 120); tb="4"; chunk=256; q=--quick; hb=4; db=8
 fi
 step() {  # step KEY LIMIT_S NAME COMMAND...: runs when KEY is among the chosen steps
   local t0=$SECONDS key=$1 lim=$2 name=$3
@@ -66,5 +67,7 @@ step hessian "${lim[4]}" "Hessian" $py "$here/tune.py" $q --out "$res/hessian" -
   --horizons 1000 --variants "Hessian (default)" "Hessian, autodiff"
 step derivatives "${lim[5]}" "derivatives, engine and array program" $py "$here/layouts.py" $q \
   --repeats 3 --out "$res/derivatives" --derivatives $db
+step ablation "${lim[6]}" "ablation" $py "$here/ablation.py" $q --repeats 3 --compile-rounds 1 \
+  --out "$res/ablation"
 tar -C "$res" -czf "$out/gpu-results.tar.gz" . && rm -rf "$res"
 echo "=== done after $SECONDS s" >>"$log"

@@ -1098,11 +1098,9 @@ def _middle_half(values: list[float]) -> tuple[float, float]:
     return q(0.25), q(0.75)
 
 
-@block("ablation")
-def ablation(R: Results) -> str:
-    d = R.get("ablation.json")
-    if d is None:
-        return not_measured("ablation.py") + "\n"
+def _ablation(d: dict, name: str) -> tuple[list[str], set[str]]:
+    """One machine's ablation (``name``): its table and text, and the passes that buy less
+    than 10 % on every workload there."""
     base, wl, configs = "all passes", list(d["workloads"]), list(d["configs"])
     by = {(r["config"], r["workload"]): r for r in d["rows"]}
     ratios: dict[str, dict[str, float]] = {}  # configuration -> workload -> ratio
@@ -1132,7 +1130,9 @@ def ablation(R: Results) -> str:
             # took longer than every round with all passes (else noise: 1.0)
             rounds, base_rounds = r.get(f"{key}_rounds"), b.get(f"{key}_rounds")
             ratio = r[key] / b[key]
-            if rounds and base_rounds and min(rounds) <= max(base_rounds):
+            if not (rounds and base_rounds) or min(len(rounds), len(base_rounds)) < 2:
+                return ratio, 1.0  # one compilation each: its noise is not measured
+            if min(rounds) <= max(base_rounds):
                 return ratio, 1.0
             return ratio, ratio
 
@@ -1178,17 +1178,18 @@ def ablation(R: Results) -> str:
     off = {p: ratios[f"no {p}"] for p in passes}
     off_c = {p: compiles.get(f"no {p}", {}) for p in passes}
     off_t = {p: traces.get(f"no {p}", {}) for p in passes}
-    cheap = [
+    cheap_set = {
         p for p in passes if max([*off[p].values(), *off_c[p].values(), *off_t[p].values()]) < 1.1
-    ]
-    cheap = ", ".join(f"`{p}`" for p in cheap) or "none"
+    }
+    cheap = ", ".join(f"`{p}`" for p in passes if p in cheap_set) or "none"
     costly = ", ".join(f"`{p}`" for p in passes if min(off[p].values()) < 1 / 1.1)
     text += (
         " A pass that buys less than 10 % on every workload, in run time, compile time and "
         "tracing (each ratio in its row below 1.10x, the run time of a program it leaves "
         "unchanged counted as 1.00x, and a compile or tracing time only where every round "
-        "with the pass off took longer than every round with all passes), is a candidate for "
-        f"removal: {cheap}."
+        "with the pass off took longer than every round with all passes, over at least two "
+        "compilations each), is a candidate for "
+        f"removal on this machine: {cheap}."
     )
     if passes:  # the workload where each pass buys the most
         most = [(p, max(off[p], key=off[p].get)) for p in passes]
@@ -1217,7 +1218,36 @@ def ablation(R: Results) -> str:
     apart = [d["workloads"][w]["label"] for w in d.get("merged", {}) if w in d["workloads"]]
     if apart:  # (`ablation.py --merge`: every ratio is within one workload's run)
         text += f" Measured in a run of their own, on the same machine: {', '.join(apart)}."
-    lines += ["", f"{text} {sources(['ablation.json'])}"]
+    if "autodiff" in ratios:  # the engine's derivative strategies, apart from its passes
+        said = ", ".join(
+            f"{x(v)} ({d['workloads'][w]['label']})" for w, v in ratios["autodiff"].items()
+        )
+        text += f" Differentiated by JAX alone (autodiff) over all passes: {said}."
+    lines += ["", f"{text} {sources([name])}"]
+    return lines, cheap_set
+
+
+@block("ablation")
+def ablation(R: Results) -> str:
+    names = [n for n in ["ablation.json", *R.gpu("ablation")] if R.get(n) is not None]
+    if not names:
+        return not_measured("ablation.py") + "\n"
+    lines, cheap, machines = [], None, []
+    for n in names:
+        d = R.get(n)
+        part, cheap_here = _ablation(d, n)
+        if lines:
+            lines += ["", f"On {device(d)} (JAX {env(d).get('jax', '?')}):", ""]
+        lines += part
+        machines.append(device(d))
+        cheap = cheap_here if cheap is None else cheap & cheap_here
+    if len(names) > 1:
+        said = ", ".join(f"`{p}`" for p in sorted(cheap)) or "none"
+        lines += [
+            "",
+            f"A pass is removed when it buys less than 10 % on every workload of every machine "
+            f"measured ({'; '.join(machines)}): {said}.",
+        ]
     return "\n".join(lines) + "\n"
 
 

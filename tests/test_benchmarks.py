@@ -219,6 +219,9 @@ def test_ablation_quick(tmp_path):
     assert none["max_rel_diff"] < 1e-12
     for r in rows.values():
         assert r["run_s"] == r["run_s_range"][0] == min(r["rounds"]) > 0 and r["compile_s"] > 0
+    # what a run cut off keeps: the finished workloads, in the final file's schema
+    partial = json.loads((tmp_path / "ablation-quick.partial.json").read_text())
+    assert partial["workloads"] == res["workloads"] and partial["rows"] == res["rows"]
 
 
 def test_ablation_merge_replaces_the_workloads_measured_again(tmp_path):

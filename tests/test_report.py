@@ -113,3 +113,62 @@ def test_unknown_or_unpaired_markers_are_errors(report, tmp_path, capsys):
     assert "no-such-table" in capsys.readouterr().err
     page.write_text("<!-- report:sweep -->\n")
     assert report.main(["--root", str(root)]) == 2
+
+
+def _ablation_result(backend: str, slowdowns: dict, compile_rounds: int) -> dict:
+    """An ablation JSON of one workload: ``slowdowns`` maps a pass to its run-time ratio
+    when off (1.0: the same program); every compilation with a pass off takes 1.5x."""
+    rows = []
+    for config, ratio in [("all passes", 1.0), *((f"no {p}", s) for p, s in slowdowns.items())]:
+        t, c = 0.01 * ratio, [1.0 if config == "all passes" else 1.5] * compile_rounds
+        same = config == "all passes" or ratio == 1.0
+        rows.append(
+            {
+                "workload": "run",
+                "config": config,
+                "run_s": t,
+                "rounds": [t, t * 1.01],
+                "compile_s": min(c),
+                "compile_s_rounds": c,
+                "same_program_as_base": same,
+            }
+        )
+    env = {
+        "backend": backend,
+        "device_kind": "NVIDIA H200" if backend == "gpu" else "cpu",
+        "cpu_count": 2,
+        "jax": "0.11.2",
+    }
+    return {
+        "env": env,
+        "dtype": "float64",
+        "method": "RKMK4",
+        "compile_rounds": compile_rounds,
+        "passes": sorted(slowdowns),
+        "configs": {"all passes": {}, **{f"no {p}": {} for p in slowdowns}},
+        "workloads": {"run": {"label": "one run"}},
+        "rows": rows,
+    }
+
+
+def test_a_pass_is_removed_only_where_it_buys_nothing_on_every_machine(report, tmp_path):
+    """The ablation's removal rule over the CPU's and a GPU's results: `hoist` buys 3x on the
+    CPU alone and stays; `tiles` buys nothing on either and is named. A compile time measured
+    once (the GPU's) is not a gain: its noise is not measured; measured three times and
+    slower in every round (the CPU's), it is."""
+    (tmp_path / "ablation.json").write_text(
+        json.dumps(_ablation_result("cpu", {"hoist": 3.0, "tiles": 1.0}, compile_rounds=3))
+    )
+    gpu = _ablation_result("gpu", {"hoist": 1.0, "tiles": 1.0}, compile_rounds=1)
+    (tmp_path / "ablation-gpu-h200.json").write_text(json.dumps(gpu))
+    text = report.ablation(report.Results(tmp_path))
+    cpu_part, gpu_part = text.split("On NVIDIA H200 (JAX 0.11.2):")
+    assert "candidate for removal on this machine: none." in cpu_part  # compile 1.5x, 3 rounds
+    assert "candidate for removal on this machine: `hoist`, `tiles`." in gpu_part
+    assert "Slower to compile with a pass off (compile time): none." in gpu_part
+    assert text.rstrip().endswith("(CPU, 2 cores; NVIDIA H200): none.")  # tiles's CPU compile
+    (tmp_path / "ablation.json").write_text(
+        json.dumps(_ablation_result("cpu", {"hoist": 3.0, "tiles": 1.0}, compile_rounds=1))
+    )
+    text = report.ablation(report.Results(tmp_path))
+    assert text.rstrip().endswith("(CPU, 2 cores; NVIDIA H200): `tiles`.")
