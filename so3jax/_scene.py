@@ -12,6 +12,7 @@ import abc
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -147,7 +148,9 @@ def rotation_tolerance(dtype) -> float:
 
 def not_rotation(R: Array) -> Array:
     """Traced: ``R`` (shape `(..., 3, 3)`) is not a rotation (`rotation_tolerance`)."""
-    E = jnp.swapaxes(R, -1, -2) @ R - jnp.eye(3, dtype=R.dtype)
+    # full precision: float32's default on a GPU (TF32) would err by more than the tolerance
+    RtR = jnp.matmul(jnp.swapaxes(R, -1, -2), R, precision=jax.lax.Precision.HIGHEST)
+    E = RtR - jnp.eye(3, dtype=R.dtype)
     err2 = jnp.sum(E * E, axis=(-2, -1))
     return ~(err2 <= rotation_tolerance(R.dtype) ** 2) | ~(jnp.linalg.det(R) > 0)
 

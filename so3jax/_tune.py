@@ -351,7 +351,7 @@ def _trapezoid(f, t, chunk_invariant: bool = False):
     w = 0.5 * (jnp.concatenate([dt, zero], -1) + jnp.concatenate([zero, dt], -1))
     if chunk_invariant:
         return jnp.sum(f * w, axis=-1)
-    return jnp.einsum("...n,...n->...", f, w)
+    return jnp.einsum("...n,...n->...", f, w, precision=jax.lax.Precision.HIGHEST)
 
 
 def _point_cost(scene, weights, t, y) -> Array:
