@@ -1,12 +1,9 @@
 """Test configuration: float64 on for the suite (the library itself never touches it)."""
 
-import atexit
 import gc
 import os
-import shutil
 import subprocess
 import sys
-import tempfile
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
@@ -57,30 +54,10 @@ def _choose_xla_flags() -> None:
 
 _choose_xla_flags()  # before JAX starts its backend in this process
 
-
-#: JAX's persistent compilation cache, in a folder of this run's own: many tests compile
-#: the same program (the same scene, method and size, built afresh), in either worker, and
-#: a program is then compiled once for the whole run, which takes markedly less time
-#: (``tests/`` on 2 cores). The folder lives as long as the run, so every run compiles
-#: afresh what it changed; SO3JAX_TEST_COMPILATION_CACHE=0 turns it off. Subprocesses and
-#: notebook kernels inherit the variable, not the cache: they compile as a user would.
-def _compilation_cache() -> str | None:
-    folder = os.environ.get("SO3JAX_TEST_COMPILATION_CACHE")
-    if folder is None and not os.environ.get("PYTEST_XDIST_WORKER"):
-        folder = tempfile.mkdtemp(prefix="so3jax-test-jax-cache-")
-        os.environ["SO3JAX_TEST_COMPILATION_CACHE"] = folder  # the workers inherit it
-        atexit.register(shutil.rmtree, folder, ignore_errors=True)
-    return None if folder in (None, "0") else folder
-
-
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
-_CACHE = _compilation_cache()
-if _CACHE:
-    jax.config.update("jax_compilation_cache_dir", _CACHE)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 #: Python's cyclic garbage collector runs less often than by default (the youngest
 #: generation after 700 net allocations, the middle one every 10th time, the oldest every
