@@ -311,9 +311,10 @@ def merged(path, new: dict) -> dict:
     return out
 
 
-def results(args, names: list[str], configs: list[str], rows: list[dict]) -> dict:
-    """The JSON of the workloads ``names`` measured so far (their ``rows``)."""
-    wl, n = workloads(args.quick), sizes(args.quick)
+def results(args, wl: dict, names: list[str], configs: list[str], rows: list[dict]) -> dict:
+    """The JSON of the workloads ``names`` of ``wl`` (`workloads`) measured so far (their
+    ``rows``)."""
+    n = sizes(args.quick)
     base = {r["workload"]: r for r in rows if r["config"] == BASE}
     for r in rows:
         r["ratio"] = r["run_s"] / base[r["workload"]]["run_s"]
@@ -376,9 +377,9 @@ def main():
         for r in measure(make, takes_program, configs, args.repeats, min_s, args.compile_rounds):
             rows.append({"workload": w, **r})
         # What finished, in the final schema: a run cut off keeps its complete workloads.
-        partial = results(args, names[: i + 1], configs, rows)
+        partial = results(args, wl, names[: i + 1], configs, rows)
         C.write_json(json_path.with_suffix(".partial.json"), partial, quiet=True)
-    data = results(args, names, configs, rows)
+    data = results(args, wl, names, configs, rows)
     C.print_table(
         [
             {

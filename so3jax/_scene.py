@@ -12,13 +12,12 @@ import abc
 from typing import ClassVar
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ._dynamics import RigidBody
 from ._repr import module_repr
-from ._so3 import _is_concrete, _prep
+from ._so3 import _FULL, _is_concrete, _prep
 from ._state import LieState, LieTangent
 from ._types import Array
 
@@ -148,8 +147,7 @@ def rotation_tolerance(dtype) -> float:
 
 def not_rotation(R: Array) -> Array:
     """Traced: ``R`` (shape `(..., 3, 3)`) is not a rotation (`rotation_tolerance`)."""
-    # full precision: float32's default on a GPU (TF32) would err by more than the tolerance
-    RtR = jnp.matmul(jnp.swapaxes(R, -1, -2), R, precision=jax.lax.Precision.HIGHEST)
+    RtR = jnp.matmul(jnp.swapaxes(R, -1, -2), R, precision=_FULL)  # (TF32 errs above it)
     E = RtR - jnp.eye(3, dtype=R.dtype)
     err2 = jnp.sum(E * E, axis=(-2, -1))
     return ~(err2 <= rotation_tolerance(R.dtype) ** 2) | ~(jnp.linalg.det(R) > 0)

@@ -94,6 +94,12 @@ def _common_dtype(*xs: Array):
 # --------------------------------------------------------------------------
 
 
+#: The precision of every contraction (``dot_general``) so3jax writes: in float32 on a GPU,
+#: JAX's default is TF32 (about three decimal digits), which a step on the group cannot
+#: afford. A CPU computes every precision alike (`tests/test_precision.py`).
+_FULL = jax.lax.Precision.HIGHEST
+
+
 def _mm(A: Array, B: Array) -> Array:
     """``A @ B`` for (..., 3, 3) arrays, as a fused multiply-add."""
     return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)

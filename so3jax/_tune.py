@@ -42,7 +42,7 @@ from ._simulate import (
     split_groups,
     split_scene,
 )
-from ._so3 import _as_float, _cross, _is_concrete, _mm, _mT, _mtv, _mv, _vee
+from ._so3 import _FULL, _as_float, _cross, _is_concrete, _mm, _mT, _mtv, _mv, _vee
 from ._trajectory import OK, Trajectory, _check_dt, _check_int
 from ._types import Array, ArrayLike
 
@@ -351,7 +351,7 @@ def _trapezoid(f, t, chunk_invariant: bool = False):
     w = 0.5 * (jnp.concatenate([dt, zero], -1) + jnp.concatenate([zero, dt], -1))
     if chunk_invariant:
         return jnp.sum(f * w, axis=-1)
-    return jnp.einsum("...n,...n->...", f, w, precision=jax.lax.Precision.HIGHEST)
+    return jnp.einsum("...n,...n->...", f, w, precision=_FULL)
 
 
 def _point_cost(scene, weights, t, y) -> Array:

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
+from .._so3 import _FULL
 from . import plan as _plan
 from .layout import _dual
 from .linear_call import linear_call
@@ -56,10 +57,6 @@ from .trees import (
     _tangent_tree,
     _unit_columns,
 )
-
-#: Contractions at full precision: in float32 on a GPU JAX's default is TF32 (about three
-#: decimal digits), which a step on the group cannot afford.
-FULL = jax.lax.Precision.HIGHEST
 
 __all__ = [
     "Strategy",
@@ -317,10 +314,10 @@ def _jacobian_jvp(loop: Programs, P, c0, nz: list, lin: list, mP: tuple, mc: tup
             dys.append(SymbolicZero(jax.typeof(y).to_tangent_aval()))
             continue
         J = next(J_it)
-        d = jnp.tensordot(coef.astype(J.dtype), J, axes=([0], [1]), precision=FULL)
+        d = jnp.tensordot(coef.astype(J.dtype), J, axes=([0], [1]), precision=_FULL)
         dys.append(d if kind == OBS_DENSE else _frame_dense(y, d, kind == OBS_LEFT))
     dys = jax.tree.unflatten(jax.tree.structure(ys), dys)
-    dcN = [jnp.tensordot(coef.astype(J.dtype), J, axes=1, precision=FULL) for J in JcN]
+    dcN = [jnp.tensordot(coef.astype(J.dtype), J, axes=1, precision=_FULL) for J in JcN]
     dcNf = _fill(mc, dcN, [jnp.zeros_like(x) for x in _floats(cN)])
     return (ys, cN), (dys, _tangent_tree(cN, dcNf))
 
@@ -410,7 +407,7 @@ class ForwardColumns:
         others = _fill(flagged.nz, [jnp.zeros_like(x) for x in xs], flagged.leaves)
         out, J = forward_differentiated(jacobian)(list(xs), others)
         coef = jnp.concatenate([jnp.ravel(t) for t in flagged.ts])
-        dout = [jnp.tensordot(coef.astype(Jk.dtype), Jk, axes=1, precision=FULL) for Jk in J]
+        dout = [jnp.tensordot(coef.astype(Jk.dtype), Jk, axes=1, precision=_FULL) for Jk in J]
         return out, _tangent_tree(out, dout)
 
 

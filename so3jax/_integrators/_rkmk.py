@@ -20,13 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._engine.passes.cuts import array_cut, array_cut_index, derivative_cut
-from .._so3 import _D_SERIES, _cross, _dcayinv, _dexpinv, _dot, _polyval
+from .._so3 import _D_SERIES, _FULL, _cross, _dcayinv, _dexpinv, _dot, _polyval
 from .._state import LieState, advance, increment, retract
 from ._base import AbstractLieSolver, ButcherTableau, lincomb
-
-#: Contractions at full precision: in float32 on a GPU JAX's default is TF32 (about three
-#: decimal digits), which a step on the group cannot afford.
-FULL = jax.lax.Precision.HIGHEST
 
 
 def _dexpinv_truncated(u, v, order: int):
@@ -137,8 +133,8 @@ def rkmk_stages_looped(
 
     def stage(i, carry):
         K, DX, _ = carry
-        u = h * jnp.tensordot(A[i], K, axes=1, precision=FULL)
-        dx = h * jnp.tensordot(A[i].astype(DX.dtype), DX, axes=1, precision=FULL)
+        u = h * jnp.tensordot(A[i], K, axes=1, precision=_FULL)
+        dx = h * jnp.tensordot(A[i].astype(DX.dtype), DX, axes=1, precision=_FULL)
         f = scene.vector_field(t + c[i] * h, retract(y, u, dx, coords))
         kt = _pull_back(u, f.xi, exact, tableau.order, coords)
         return K.at[i].set(kt), DX.at[i].set(f.dx), f

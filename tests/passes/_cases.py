@@ -257,6 +257,11 @@ def programs(name, passes: frozenset) -> dict:
 #: elsewhere they leave every program as it is, and only their equality is proved.
 ONE_CPU_DEVICE_ONLY = frozenset({"hoist", "cuts", "tiles"})
 
+#: A test of what such a pass does, skipped elsewhere.
+ON_ONE_CPU_DEVICE = pytest.mark.skipif(
+    not policy.one_cpu_device(), reason="the pass acts on one CPU device only"
+)
+
 
 def assert_acts(pass_name: str, name: str) -> None:
     """Pass ``pass_name`` changes the program of at least one transform of case ``name``

@@ -21,12 +21,7 @@ def test_alone_equals_reference(case, dtype):
     C.assert_alone_equals_reference("hoist", case, dtype)
 
 
-ONE_CPU = pytest.mark.skipif(
-    not policy.one_cpu_device(), reason="the pass acts on one CPU device only"
-)
-
-
-@ONE_CPU
+@C.ON_ONE_CPU_DEVICE
 @pytest.mark.parametrize("case", ("seed",))
 def test_plan_shows_the_pass(case):
     plan = C.plan(case, "vmap", C.NEEDS["hoist"] | {"hoist"})
@@ -60,7 +55,7 @@ def test_residuals_pack_into_one_vector_per_dtype_and_back(specs):
         np.testing.assert_array_equal(a, b)
 
 
-@ONE_CPU
+@C.ON_ONE_CPU_DEVICE
 def test_no_hoisted_loop_makes_an_array_xla_would_split_across_threads():
     """A loop that makes an array of the policy's ``hoist_max_inner`` bytes or more inside
     its body, over the batch, is not hoisted: from 8 MiB XLA's CPU compiler splits an
